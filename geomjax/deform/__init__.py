@@ -1,0 +1,1 @@
+"""Point deformations: one public op per module."""
