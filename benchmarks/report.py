@@ -1,0 +1,58 @@
+"""Render the saved benchmark results as Markdown tables, optionally into README.md.
+
+Usage: python benchmarks/report.py [--write-readme]
+
+Each ``benchmarks/bench_*.py`` saves ``benchmarks/results/<name>.json`` (machine description and
+rows). This script prints one table per result file and, with ``--write-readme``, replaces the
+block between ``<!-- perf-table:start -->`` and ``<!-- perf-table:end -->`` in README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+HERE = Path(__file__).parent
+README = HERE.parent / "README.md"
+START, END = "<!-- perf-table:start -->", "<!-- perf-table:end -->"
+
+
+def _cell(value) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "**no**"
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    return "" if value is None else str(value)
+
+
+def render() -> str:
+    parts = []
+    for path in sorted((HERE / "results").glob("*.json")):
+        data = json.loads(path.read_text())
+        rows, machine = data["rows"], data["machine"]
+        keys = list(dict.fromkeys(k for row in rows for k in row))
+        where = f"{machine['platform']} ({machine['device']}), jax {machine['jax']}"
+        parts.append(f"**{path.stem}** — measured on {where}, by `benchmarks/{path.stem}.py`\n")
+        parts.append("| " + " | ".join(keys) + " |")
+        parts.append("|" + "---|" * len(keys))
+        parts.extend("| " + " | ".join(_cell(row.get(k)) for k in keys) + " |" for row in rows)
+        parts.append("")
+    return "\n".join(parts)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--write-readme", action="store_true")
+    args = parser.parse_args()
+    tables = render()
+    print(tables)
+    if args.write_readme:
+        text = README.read_text()
+        head, rest = text.split(START, 1)
+        _, tail = rest.split(END, 1)
+        README.write_text(f"{head}{START}\n{tables}\n{END}{tail}")
+
+
+if __name__ == "__main__":
+    main()
