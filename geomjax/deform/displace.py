@@ -44,9 +44,9 @@ def displace_points(
     Example:
         >>> import jax.numpy as jnp
         >>> from geomjax import displace_points
-        >>> points = jnp.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
-        >>> displacement = jnp.array([[0.0, 1.0], [0.0, 1.0], [0.0, 1.0]])
-        >>> displace_points(points, displacement, point_weights=jnp.array([0.0, 0.5, 1.0]))
+        >>> points = jnp.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]], dtype=jnp.float32)
+        >>> displacement = jnp.array([[0.0, 1.0], [0.0, 1.0], [0.0, 1.0]], dtype=jnp.float32)
+        >>> displace_points(points, displacement, point_weights=jnp.array([0.0, 0.5, 1.0], dtype=jnp.float32))
         Array([[0. , 0. ],
                [1. , 0.5],
                [2. , 1. ]], dtype=float32)
