@@ -21,7 +21,7 @@ values = st.sampled_from([0.0, 1.0, -1.0, np.nan, np.inf, 1e30, 1e-30])
 
 def _array(shape, dtype, fill):
     data = np.random.default_rng(len(shape)).normal(size=shape)
-    if shape:
+    if data.size:
         data.flat[0] = fill
     return jnp.asarray(data).astype(dtype)
 
