@@ -40,12 +40,19 @@ def best_time(fn, *, repeat: int = 3, warmup: int = 1) -> float:
 def peak_rss_bytes_of(code: str) -> int:
     """Run ``code`` in a fresh Python process and return its peak resident memory in bytes.
 
-    A subprocess keeps earlier allocations of the benchmark itself out of the figure.
+    A subprocess keeps earlier allocations of the benchmark itself out of the figure. The peak is
+    read from ``VmHWM`` in ``/proc/self/status``: ``ru_maxrss`` would report the parent's peak,
+    which a forked child inherits.
     """
-    script = f"{code}\nimport resource, sys; print('PEAK_RSS_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
+    script = f"{code}\n{_PRINT_PEAK}"
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
     kb = int(next(line.split()[1] for line in out.splitlines() if line.startswith("PEAK_RSS_KB")))
     return kb * 1024
+
+
+_PRINT_PEAK = (
+    "print('PEAK_RSS_KB', next(l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM:')))"
+)
 
 
 def self_peak_rss_bytes() -> int:

@@ -9,10 +9,15 @@ import pytest
 import geomjax
 import torch_bridge
 
+# The packages themselves and every module and subpackage below them (``walk_packages`` lists only
+# what is below, so the package ``__init__`` docstrings are added explicitly).
 MODULES = sorted(
-    name
-    for package in (geomjax, torch_bridge)
-    for _, name, _ in pkgutil.walk_packages(package.__path__, package.__name__ + ".")
+    {package.__name__ for package in (geomjax, torch_bridge)}
+    | {
+        name
+        for package in (geomjax, torch_bridge)
+        for _, name, _ in pkgutil.walk_packages(package.__path__, package.__name__ + ".")
+    }
 )
 
 

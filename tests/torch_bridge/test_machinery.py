@@ -1,0 +1,292 @@
+"""torch_bridge's generic machinery: signatures from the table, tuple and integer outputs, any-order
+gradients, DLPack, float64 without JAX configuration, the eager fast path vs the dispatcher."""
+
+from __future__ import annotations
+
+import inspect
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+from torch.overrides import TorchFunctionMode
+
+import torch_bridge
+from torch_bridge import _bridge
+from torch_bridge._bridge import BridgedOp, make_public_function
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _toy(points, *, scale=2.0, powers=(3,)):
+    """A test-only op with a tuple output: a float field, integer indices and a scalar."""
+    field = sum(points**p for p in powers) * scale
+    return field, jnp.argmax(points, axis=-1).astype(jnp.int32), jnp.sum(points**2)
+
+
+TOY = BridgedOp(
+    "bridge_test_toy(points: Tensor, *, scale: float = 2.0, powers: Sequence[int] = (3,)) -> tuple[Tensor, Tensor, Tensor]",
+    _toy,
+)
+toy = make_public_function(TOY)
+
+
+def _points(dtype=torch.float64, shape=(4, 3), seed=0):
+    return torch.randn(shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64).to(dtype)
+
+
+# ---------------------------------------------------------------------------------------------
+# signatures
+# ---------------------------------------------------------------------------------------------
+
+
+def test_generated_signature_follows_the_table_entry():
+    signature = inspect.signature(toy)
+    assert str(signature) == "(points, *, scale=2.0, powers=(3,))"
+    assert toy.__name__ == "bridge_test_toy" and toy.__module__ == "torch_bridge"
+    assert str(TOY.lifted.op._schema) == (
+        "geomjax::bridge_test_toy(Tensor points, float scale, int[] powers, bool[] requires_grad) -> (Tensor, Tensor, Tensor)"
+    )
+
+
+def test_union_annotations_split_into_tensor_and_static_slots():
+    op = torch_bridge.morph_points.bridged_op
+    schema = str(op.lifted.op._schema)
+    assert "Tensor? radius" in schema and "float? radius_value" in schema
+    ffd_schema = str(torch_bridge.free_form_deform_points.bridged_op.lifted.op._schema)
+    assert "Tensor? origin" in ffd_schema and "float[]? origin_value" in ffd_schema
+
+
+def test_bad_table_entries_are_rejected():
+    with pytest.raises(ValueError, match="annotation"):
+        BridgedOp("bridge_test_bad(points: Tensor, mesh: Mesh) -> Tensor", _toy)
+    with pytest.raises(ValueError, match="nondifferentiable"):
+        BridgedOp("bridge_test_bad2(points: Tensor) -> Tensor", _toy, nondifferentiable=("origin",))
+
+
+# ---------------------------------------------------------------------------------------------
+# tuple and integer outputs, gradients of any order
+# ---------------------------------------------------------------------------------------------
+
+
+def test_tuple_outputs_values_and_dtypes():
+    points = _points()
+    field, index, total = toy(points, scale=0.5, powers=[1, 2])
+    expected = _toy(jnp.asarray(points.numpy()), scale=0.5, powers=(1, 2))
+    assert field.dtype == torch.float64 and index.dtype == torch.int32 and total.shape == ()
+    np.testing.assert_array_equal(index.numpy(), np.asarray(expected[1]))
+    for ours, theirs in ((field, expected[0]), (total, expected[2])):  # jit vs eager rounding
+        np.testing.assert_allclose(ours.numpy(), np.asarray(theirs), rtol=1e-15, atol=1e-15)
+
+
+def test_tuple_outputs_gradcheck_and_gradgradcheck():
+    points = _points().requires_grad_()
+
+    def float_outputs(p):  # gradcheck's numerical Jacobian cannot skip the integer output
+        field, _, total = toy(p, powers=[2, 3])
+        return field, total
+
+    assert torch.autograd.gradcheck(float_outputs, (points,))
+    assert torch.autograd.gradgradcheck(float_outputs, (points,))
+
+
+def test_unused_outputs_and_integer_outputs_get_no_cotangent():
+    points = _points().requires_grad_()
+    field, index, total = toy(points)
+    assert not index.requires_grad
+    (grad,) = torch.autograd.grad(total, points)  # field's cotangent is absent (None)
+    torch.testing.assert_close(grad, 2 * points.detach(), rtol=0, atol=0)
+
+
+def test_third_order_gradients_recurse_through_lifted_vjps():
+    points = _points().requires_grad_()
+    field = toy(points, scale=1.5)[0]  # 1.5 p^3
+    (first,) = torch.autograd.grad(field.sum(), points, create_graph=True)
+    (second,) = torch.autograd.grad(first.sum(), points, create_graph=True)
+    (third,) = torch.autograd.grad(second.sum(), points)
+    torch.testing.assert_close(first, 4.5 * points.detach() ** 2, rtol=1e-15, atol=0)
+    torch.testing.assert_close(second, 9.0 * points.detach(), rtol=1e-15, atol=0)
+    torch.testing.assert_close(third, torch.full_like(points, 9.0), rtol=0, atol=0)
+    assert "bridge_test_toy_vjp_vjp" in str(TOY.lifted.vjp.vjp.op._schema)
+
+
+def test_toy_opcheck_and_compile():
+    points = _points().requires_grad_()
+    torch.library.opcheck(TOY.lifted.op, (points, 2.0, [3], [True]))
+    cotangents = [torch.ones_like(points).requires_grad_(), torch.ones((), dtype=points.dtype)]
+    torch.library.opcheck(TOY.lifted.vjp.op, (points, cotangents, 2.0, [3], [True, False, True], [True], [True, True, False]))
+    torch._dynamo.reset()
+    compiled = torch.compile(lambda p: toy(p, powers=[1, 3]), fullgraph=True, backend="aot_eager")
+    for ours, theirs in zip(compiled(points), toy(points, powers=[1, 3])):
+        torch.testing.assert_close(ours, theirs, rtol=0, atol=0)
+
+
+def test_compile_with_dynamic_shapes():
+    torch._dynamo.reset()
+    compiled = torch.compile(lambda p, d: torch_bridge.displace_points(p, d), fullgraph=True, dynamic=True)
+    for n in (3, 5, 8):
+        p, d = _points(shape=(n, 2)), _points(shape=(n, 2), seed=1)
+        torch.testing.assert_close(compiled(p, d), p + d, rtol=0, atol=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# DLPack and dtypes
+# ---------------------------------------------------------------------------------------------
+
+
+def test_dlpack_is_zero_copy_both_ways():
+    t = _points(torch.float32, (64, 3))
+    a = _bridge.to_jax(t)
+    assert a.unsafe_buffer_pointer() == t.data_ptr()
+    b = jnp.sin(a)
+    back = _bridge.to_torch(b, t.device)
+    assert back.data_ptr() == b.unsafe_buffer_pointer()
+    torch.testing.assert_close(back, torch.sin(t))
+
+
+def test_cpu_views_are_reused_and_follow_the_tensor():
+    views = _bridge._cpu_views
+    p, d = _points(torch.float32, (16, 3)), _points(torch.float32, (16, 3), seed=1)
+    first = torch_bridge.displace_points(p, d)
+    assert _bridge.to_jax(p) is _bridge.to_jax(p)  # a kept view: no DLPack import per call
+    with torch.no_grad():
+        p.mul_(2.0)  # in place: same memory, the kept view sees it
+    torch.testing.assert_close(torch_bridge.displace_points(p, d), 2 * (first - d) + d)
+    p.set_(torch.ones(4, 3))  # new memory and shape: a new view
+    torch.testing.assert_close(torch_bridge.displace_points(p, torch.ones(4, 3)), torch.full((4, 3), 2.0))
+    key = id(p)
+    assert key in views._views
+    del p
+    assert key not in views._views  # released with the tensor
+    strided = _points(torch.float32, (3, 16)).T
+    before = len(views._views)
+    _bridge.to_jax(strided)  # a contiguous copy is a snapshot: never kept
+    assert len(views._views) == before
+
+
+def test_empty_arrays_convert():
+    out = _bridge.to_torch(jnp.zeros((0, 3), jnp.float32), torch.device("cpu"))
+    assert out.shape == (0, 3) and out.dtype == torch.float32
+
+
+def test_non_contiguous_inputs():
+    p, d = _points(shape=(3, 6)).T, _points(shape=(3, 6), seed=1).T
+    assert not p.is_contiguous()
+    torch.testing.assert_close(torch_bridge.displace_points(p, d), p + d, rtol=0, atol=0)
+
+
+def test_parameters_are_plain_tensors():
+    p = torch.nn.Parameter(_points())
+    d = _points(seed=1)
+    torch_bridge.displace_points(p, d).sum().backward()
+    torch.testing.assert_close(p.grad, torch.ones_like(p))
+
+
+def test_float64_round_trips_exactly_without_jax_x64():
+    """conftest enables x64 for the session, which hides float64 bugs: run without it."""
+    code = """
+import jax, numpy as np, torch
+import torch_bridge
+assert not jax.config.jax_enable_x64
+rng = np.random.default_rng(0)
+p, d = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
+# powers of two: w * d is exact, so XLA's fused multiply-add rounds exactly like numpy
+w = np.array([0.5, -2.0, 1.0, 0.25, -4.0, 8.0, -0.125])
+points = torch.tensor(p, requires_grad=True)
+displacement = torch.tensor(d, requires_grad=True)
+weights = torch.tensor(w, requires_grad=True)
+out = torch_bridge.displace_points(points, displacement, point_weights=weights)
+assert out.dtype == torch.float64
+assert np.array_equal(out.detach().numpy(), p + w[:, None] * d), "float64 values lost precision"
+out.backward(torch.ones_like(out))
+assert np.array_equal(displacement.grad.numpy(), np.repeat(w[:, None], 3, axis=1))
+assert np.allclose(weights.grad.numpy(), d.sum(axis=1), rtol=1e-15, atol=1e-15)
+assert np.array_equal(points.grad.numpy(), np.ones((7, 3)))
+# Ops that build constants inside return float32 or raise when JAX's x64 mode is off: compare
+# with geomjax under an explicit x64 context (same jitted computation, so bit-identical).
+from tests.torch_bridge.test_ops import CASES, as_jax
+import geomjax
+for name, case in CASES.items():
+    inputs = {**case(torch.float64), "implementation": "jax"}
+    out = getattr(torch_bridge, name)(**inputs)
+    with jax.enable_x64(True):
+        arrays = {k: v for k, v in as_jax(inputs).items() if isinstance(v, jax.Array)}
+        options = {k: v for k, v in inputs.items() if k not in arrays}
+        expected = jax.jit(lambda a: getattr(geomjax, name)(**a, **options))(arrays)
+    assert out.dtype == torch.float64, name
+    assert np.array_equal(out.numpy(), np.asarray(expected)), name
+assert not jax.config.jax_enable_x64, "the global x64 flag was flipped"
+print("OK")
+"""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=REPO, timeout=300)
+    assert result.returncode == 0 and result.stdout.strip().endswith("OK"), result.stderr[-3000:]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_dtype_is_preserved(dtype):
+    p = _points(dtype)
+    assert torch_bridge.displace_points(p, p).dtype == dtype
+
+
+# ---------------------------------------------------------------------------------------------
+# eager fast path vs the dispatcher
+# ---------------------------------------------------------------------------------------------
+
+
+class _PassThrough(TorchFunctionMode):
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        return func(*args, **(kwargs or {}))
+
+
+def test_dispatcher_path_equals_eager_fast_path():
+    def run():
+        p = _points().requires_grad_()
+        c = _points(shape=(2, 3), seed=1).requires_grad_()
+        d = (0.1 * _points(shape=(2, 3), seed=2)).requires_grad_()
+        out = torch_bridge.morph_points(p, c, d, radius=1.5, implementation="jax")
+        grads = torch.autograd.grad(out, (p, c, d), torch.ones_like(out))
+        return out.detach(), grads
+
+    assert _bridge._plain_eager([_points()])
+    fast = run()
+    with _PassThrough():
+        assert not _bridge._plain_eager([_points()])
+        dispatched = run()
+    torch.testing.assert_close(dispatched[0], fast[0], rtol=0, atol=0)
+    for a, b in zip(dispatched[1], fast[1]):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_gradcheck_through_the_dispatcher():
+    p = _points().requires_grad_()
+    w = _points(shape=(4,), seed=3).requires_grad_()
+    with _PassThrough():
+        assert torch.autograd.gradcheck(lambda p, w: torch_bridge.displace_points(p, p, point_weights=w), (p, w))
+        assert torch.autograd.gradgradcheck(lambda p, w: torch_bridge.displace_points(p, p, point_weights=w), (p, w))
+
+
+def test_jax_arrays_are_not_kept_alive():
+    import gc
+    import weakref
+
+    p = _points(torch.float32, (32, 3))
+    out = torch_bridge.displace_points(p, p)
+    ref = weakref.ref(out)
+    del out
+    gc.collect()
+    assert ref() is None
+    assert jax.config.jax_enable_x64  # conftest's setting is left alone
+
+
+def test_package_docstring_example_runs():
+    import doctest
+
+    result = doctest.testmod(torch_bridge, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted > 0 and result.failed == 0

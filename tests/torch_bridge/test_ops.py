@@ -1,0 +1,520 @@
+"""torch_bridge, op by op: every test is parametrised over the op table.
+
+Each op in ``torch_bridge._ops.OPS`` needs an input builder in ``CASES`` (``test_every_op_has_a_case``
+fails otherwise); everything else — values against geomjax, gradcheck, gradgradcheck, opcheck,
+torch.compile, errors — then runs for it automatically.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+
+import geomjax
+import torch_bridge
+from torch_bridge._ops import OPS
+
+OP_BY_NAME = {op.name: op for op in OPS}
+NAMES = [op.name for op in OPS]
+
+
+def _rand(gen, shape, dtype, scale=1.0, shift=0.0):
+    return (torch.rand(shape, generator=gen, dtype=torch.float64) * scale + shift).to(dtype)
+
+
+def _randn(gen, shape, dtype, scale=1.0):
+    return (torch.randn(shape, generator=gen, dtype=torch.float64) * scale).to(dtype)
+
+
+def displace_case(dtype, batch=(), n=5, **_):
+    gen = torch.Generator().manual_seed(1)
+    return {
+        "points": _randn(gen, (*batch, n, 3), dtype),
+        "displacement": _randn(gen, (*batch, n, 3), dtype),
+        "point_weights": _randn(gen, (*batch, n), dtype),
+    }
+
+
+def morph_case(dtype, batch=(), n=6, controls=3, **_):
+    gen = torch.Generator().manual_seed(2)
+    return {
+        "points": _rand(gen, (*batch, n, 3), dtype),
+        "control_points": _rand(gen, (*batch, controls, 3), dtype),
+        "control_displacements": _randn(gen, (*batch, controls, 3), dtype, 0.2),
+        "radius": _rand(gen, (*batch, controls), dtype, 0.3, 0.8),
+        "point_weights": _rand(gen, (*batch, n), dtype, 1.5, -0.25),
+    }
+
+
+def rbf_case(dtype, batch=(), n=6, controls=5, **_):
+    gen = torch.Generator().manual_seed(3)
+    corners = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.0]], dtype=torch.float64)
+    layout = torch.cat([corners, torch.rand((max(controls - 5, 0), 3), generator=gen, dtype=torch.float64)])[:controls]
+    control_points = (layout + 0.05 * torch.rand((*batch, controls, 3), generator=gen, dtype=torch.float64)).to(dtype)
+    return {
+        "points": _rand(gen, (*batch, n, 3), dtype),
+        "control_points": control_points,
+        "control_displacements": _randn(gen, (*batch, controls, 3), dtype, 0.2),
+        "smoothing": 0.01,
+        "point_weights": _rand(gen, (*batch, n), dtype, 1.5, -0.25),
+    }
+
+
+def ffd_case(dtype, batch=(), n=6, **_):
+    gen = torch.Generator().manual_seed(4)
+    return {
+        "points": _rand(gen, (*batch, n, 3), dtype, 1.2, -0.1),  # some points outside the box
+        "control_displacements": _randn(gen, (*batch, 3, 2, 3, 3), dtype, 0.2),
+        "origin": [0.0, -0.05, 0.0],
+        "extent": [1.0, 1.1, 1.0],
+        "basis": "bernstein",
+        "point_weights": _rand(gen, (*batch, n), dtype, 1.5, -0.25),
+    }
+
+
+CASES = {
+    "displace_points": displace_case,
+    "morph_points": morph_case,
+    "radial_basis_function_deform_points": rbf_case,
+    "free_form_deform_points": ffd_case,
+}
+# Backends geomjax registers for each op (the bridge adds "torch" -> "jax").
+IMPLEMENTATIONS = {
+    "displace_points": ("jax",),
+    "morph_points": ("jax", "warp"),
+    "radial_basis_function_deform_points": ("jax", "warp"),
+    "free_form_deform_points": ("jax", "warp"),
+}
+# A value each op rejects with ValueError (None: the op has no such option).
+BAD_OPTION_VALUES = {
+    "displace_points": None,
+    "morph_points": {"radius": -1.0},
+    "radial_basis_function_deform_points": {"smoothing": -1.0},
+    "free_form_deform_points": {"extent": [1.0, 0.0, 1.0]},
+}
+# Tensor parameters that are configuration, not design variables.
+NON_DIFFERENTIABLE = {"free_form_deform_points": ("origin", "extent")}
+
+IMPLEMENTATION_PARAMS = [(name, impl) for name in NAMES for impl in IMPLEMENTATIONS.get(name, ("jax",))]
+
+
+def public(name):
+    return getattr(torch_bridge, name)
+
+
+def differentiable(name, inputs):
+    return [
+        k
+        for k, v in inputs.items()
+        if isinstance(v, torch.Tensor) and v.is_floating_point() and k not in NON_DIFFERENTIABLE.get(name, ())
+    ]
+
+
+def as_jax(inputs):
+    return {k: jnp.asarray(v.detach().numpy()) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
+
+
+def geomjax_reference(name, inputs):
+    """geomjax's own result on the same inputs (jitted: one compile instead of many eager ones)."""
+    arrays = {k: v for k, v in as_jax(inputs).items() if isinstance(v, jax.Array)}
+    options = {k: v for k, v in inputs.items() if k not in arrays}
+    return jax.jit(lambda a: getattr(geomjax, name)(**a, **options))(arrays)
+
+
+def function_of(name, inputs, wrt):
+    """``f(*tensors)`` calling the public function with ``wrt`` replaced (for gradcheck)."""
+    fn = public(name)
+
+    def f(*tensors):
+        return fn(**{**inputs, **dict(zip(wrt, tensors))})
+
+    return f
+
+
+def with_grad(inputs, names):
+    return {k: (v.detach().clone().requires_grad_() if k in names else v) for k, v in inputs.items()}
+
+
+def op_arguments(name, inputs):
+    """Custom-op arguments ``(slots, statics, requires_grad)`` for the public inputs."""
+    op = OP_BY_NAME[name]
+    values = [inputs.get(p.name, p.default) for p in op.parameters]
+    slots, statics = op.bind(values)
+    return slots, statics, [x is not None and x.requires_grad for x in slots]
+
+
+# ---------------------------------------------------------------------------------------------
+# table and signatures
+# ---------------------------------------------------------------------------------------------
+
+
+def test_every_op_has_a_case():
+    assert set(CASES) == set(NAMES)
+    assert set(torch_bridge.__all__) == set(NAMES)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_signature_matches_geomjax(name):
+    ours = inspect.signature(public(name)).parameters
+    theirs = inspect.signature(getattr(geomjax, name)).parameters
+    assert list(ours) == list(theirs)
+    for key in ours:
+        assert ours[key].kind == theirs[key].kind, key
+        assert ours[key].default == theirs[key].default, key
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_custom_op_is_registered(name):
+    op = getattr(torch.ops.geomjax, name).default
+    schema = str(op._schema)
+    assert schema.startswith(f"geomjax::{name}(") and schema.endswith("bool[] requires_grad) -> Tensor")
+    assert op is OP_BY_NAME[name].lifted.op
+
+
+# ---------------------------------------------------------------------------------------------
+# values and gradients against geomjax
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("dtype", "batch"),
+    [(torch.float32, ()), (torch.float64, ()), (torch.float64, (2,))],
+    ids=["f32", "f64", "f64-batched"],
+)
+@pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
+def test_values_equal_geomjax(name, implementation, dtype, batch):
+    inputs = {**CASES[name](dtype, batch=batch), "implementation": implementation}
+    out = public(name)(**inputs)
+    expected = np.asarray(geomjax_reference(name, inputs))
+    assert out.dtype == dtype and tuple(out.shape) == expected.shape
+    tol = 2e-6 if dtype == torch.float32 else 1e-13  # XLA may fuse the two programs differently
+    np.testing.assert_allclose(out.numpy(), expected, rtol=tol, atol=tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+@pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
+def test_gradients_equal_geomjax(name, implementation, dtype):
+    base = {**CASES[name](dtype), "implementation": implementation}
+    names = differentiable(name, base)
+    inputs = with_grad(base, names)
+    out = public(name)(**inputs)
+    cotangent = torch.linspace(-1.0, 1.0, out.numel(), dtype=dtype).reshape(out.shape)
+    grads = torch.autograd.grad(out, [inputs[k] for k in names], cotangent)
+
+    arrays = as_jax(base)
+    options = {k: v for k, v in arrays.items() if k not in names}
+    fn = getattr(geomjax, name)
+
+    @jax.jit
+    def reference(xs, ct):
+        return jax.vjp(lambda *xs: fn(**dict(zip(names, xs)), **options), *xs)[1](ct)
+
+    expected = reference(tuple(arrays[k] for k in names), jnp.asarray(cotangent.numpy()))
+    tol = 2e-6 if dtype == torch.float32 else 1e-13
+    for k, g, e in zip(names, grads, expected):
+        assert g.dtype == dtype, k
+        np.testing.assert_allclose(g.numpy(), np.asarray(e), rtol=tol, atol=tol, err_msg=k)
+
+
+@pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
+def test_gradcheck(name, implementation):
+    inputs = {**CASES[name](torch.float64, n=4), "implementation": implementation}
+    names = differentiable(name, inputs)
+    tensors = [inputs[k].detach().clone().requires_grad_() for k in names]
+    assert torch.autograd.gradcheck(function_of(name, inputs, names), tensors)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_gradgradcheck_jax_path(name):
+    inputs = {**CASES[name](torch.float64, n=3), "implementation": "jax"}
+    # Two inputs keep XLA's compile time of the second-order graphs small; gradcheck covers all.
+    names = differentiable(name, inputs)[:2]
+    tensors = [inputs[k].detach().clone().requires_grad_() for k in names]
+    assert torch.autograd.gradgradcheck(function_of(name, inputs, names), tensors, fast_mode=True)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_implementation_torch_means_jax(name):
+    inputs = CASES[name](torch.float64)
+    torch.testing.assert_close(
+        public(name)(**inputs, implementation="torch"), public(name)(**inputs, implementation="jax"), rtol=0, atol=0
+    )
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_only_requested_gradients_are_returned(name):
+    base = CASES[name](torch.float64)
+    names = differentiable(name, base)
+    inputs = with_grad(base, names[-1:])  # only the last differentiable input requires grad
+    out = public(name)(**inputs)
+    out.sum().backward()
+    assert inputs[names[-1]].grad is not None
+    for k in names[:-1]:
+        assert not inputs[k].requires_grad
+
+
+# ---------------------------------------------------------------------------------------------
+# point weights, empty inputs
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_bool_weights_are_a_non_differentiable_mask(name):
+    base = CASES[name](torch.float64)
+    mask = torch.zeros(base["points"].shape[:-1], dtype=torch.bool)
+    mask[::2] = True
+    base = {**base, "point_weights": mask}
+    names = differentiable(name, base)
+    assert "point_weights" not in names
+    inputs = with_grad(base, names)
+    out = public(name)(**inputs)
+    np.testing.assert_allclose(out.detach().numpy(), np.asarray(geomjax_reference(name, base)), rtol=1e-13, atol=1e-13)
+    torch.testing.assert_close(out[~mask], base["points"][~mask], rtol=0, atol=0)
+    grads = torch.autograd.grad(out.sum(), [inputs[k] for k in names])
+    assert all(g is not None for g in grads)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_float_weights_get_gradients(name):
+    base = CASES[name](torch.float64)
+    inputs = with_grad(base, ["point_weights"])
+    out = public(name)(**inputs)
+    (grad,) = torch.autograd.grad(out.sum(), inputs["point_weights"])
+    # x' = x + w u  =>  d sum(x') / d w = sum over coordinates of u = (x' - x) / w
+    field = (out.detach() - base["points"]) / base["point_weights"][..., None]
+    torch.testing.assert_close(grad, field.sum(-1), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_empty_points(name):
+    base = CASES[name](torch.float64, n=0)
+    names = differentiable(name, base)
+    inputs = with_grad(base, names)
+    out = public(name)(**inputs)
+    assert tuple(out.shape) == tuple(base["points"].shape)
+    grads = torch.autograd.grad(out.sum(), [inputs[k] for k in names])
+    for k, g in zip(names, grads):
+        assert g is not None and g.shape == inputs[k].shape and not g.abs().sum(), k
+
+
+@pytest.mark.parametrize("name", [n for n in NAMES if "controls" in inspect.signature(CASES[n]).parameters])
+def test_zero_controls_is_identity_with_defined_gradients(name):
+    base = CASES[name](torch.float64, controls=0)
+    names = differentiable(name, base)
+    inputs = with_grad(base, names)
+    out = public(name)(**inputs)
+    torch.testing.assert_close(out, base["points"], rtol=0, atol=0)
+    grads = torch.autograd.grad(out.sum(), [inputs[k] for k in names])
+    for k, g in zip(names, grads):
+        assert g is not None and g.shape == inputs[k].shape, k
+
+
+# ---------------------------------------------------------------------------------------------
+# errors (same exception types as the reference)
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_error_types(name):
+    fn, inputs = public(name), CASES[name](torch.float32)
+    second = next(k for k in differentiable(name, inputs) if k != "points")
+    with pytest.raises(TypeError):
+        fn(**{**inputs, "points": inputs["points"].half()})
+    with pytest.raises(TypeError):
+        fn(**{**inputs, "points": inputs["points"].to(torch.int32)})
+    with pytest.raises(TypeError):
+        fn(**{**inputs, second: inputs[second].double()})
+    with pytest.raises(TypeError):
+        fn(**{**inputs, "point_weights": inputs["point_weights"].double()})
+    with pytest.raises(TypeError):
+        fn(**{**inputs, "point_weights": inputs["point_weights"].to(torch.int64)})
+    with pytest.raises(TypeError):
+        fn(**{**inputs, "points": inputs["points"].numpy()})
+    with pytest.raises(ValueError):
+        fn(**{**inputs, "points": inputs["points"][..., :2]})
+    with pytest.raises(ValueError):
+        fn(**{**inputs, "point_weights": inputs["point_weights"][:-1]})
+    with pytest.raises(ValueError):
+        fn(**{**inputs, "points": inputs["points"][None]})  # batched points, unbatched companions
+    with pytest.raises(KeyError):
+        fn(**inputs, implementation="cuda")
+    with pytest.raises(KeyError):
+        fn(**inputs, implementation=3)
+    if "warp" not in IMPLEMENTATIONS[name]:
+        with pytest.raises(KeyError):
+            fn(**inputs, implementation="warp")
+    if BAD_OPTION_VALUES[name] is not None:
+        with pytest.raises(ValueError):
+            fn(**{**inputs, **BAD_OPTION_VALUES[name]})
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_python_option_types_raise_geomjax_errors(name):
+    fn, inputs = public(name), CASES[name](torch.float32)
+    op = OP_BY_NAME[name]
+    for p in op.parameters:
+        if p.static_type is None or p.name == "implementation":
+            continue
+        base = p.static_type.rstrip("?")
+        bad = {"float": True, "int": 1.5, "bool": 1, "str": 3, "float[]": [1.0, True, 1.0]}[base]
+        expected = ValueError if base == "str" else TypeError  # unknown names are ValueError
+        with pytest.raises(expected):
+            fn(**{**inputs, p.name: bad})
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_mismatched_devices_raise_value_error(name):
+    fn, inputs = public(name), CASES[name](torch.float32)
+    second = next(k for k in differentiable(name, inputs) if k != "points")
+    with pytest.raises(ValueError, match="device"):
+        fn(**{**inputs, second: inputs[second].to("meta")})
+
+
+def test_ffd_box_requiring_grad_is_a_value_error():
+    inputs = CASES["free_form_deform_points"](torch.float64)
+    box = {"origin": torch.tensor(inputs["origin"], dtype=torch.float64), "extent": torch.tensor(inputs["extent"], dtype=torch.float64)}
+    expected = torch_bridge.free_form_deform_points(**{**inputs, **box})
+    torch.testing.assert_close(expected, torch_bridge.free_form_deform_points(**inputs), rtol=0, atol=0)
+    for key in box:
+        bad = {**inputs, **box, key: box[key].clone().requires_grad_()}
+        with pytest.raises(ValueError, match=key):
+            torch_bridge.free_form_deform_points(**bad)
+        with torch.no_grad(), pytest.raises(ValueError, match=key):
+            torch_bridge.free_form_deform_points(**bad)
+
+
+# ---------------------------------------------------------------------------------------------
+# custom ops: opcheck
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_opcheck_forward(name):
+    base = {**CASES[name](torch.float64, n=4), "implementation": "jax"}
+    lifted = OP_BY_NAME[name].lifted
+    for grad in (False, True):
+        inputs = with_grad(base, differentiable(name, base) if grad else [])
+        slots, statics, requires_grad = op_arguments(name, inputs)
+        torch.library.opcheck(lifted.op, (*slots, *statics, requires_grad))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_opcheck_backward_op(name):
+    """The autograd formula's op: the lifted VJP (its own autograd is its lifted VJP)."""
+    base = {**CASES[name](torch.float64, n=4), "implementation": "jax"}
+    inputs = with_grad(base, differentiable(name, base))
+    slots, statics, requires_grad = op_arguments(name, inputs)
+    output = public(name)(**inputs)
+    cotangent = torch.linspace(-1.0, 1.0, output.numel(), dtype=torch.float64).reshape(output.shape).requires_grad_()
+    vjp = OP_BY_NAME[name].lifted.vjp
+    arguments = (*slots, [cotangent], *statics, [True], requires_grad, [*requires_grad, True])
+    torch.library.opcheck(vjp.op, arguments)
+    grads = vjp.op(*arguments)
+    expected = torch.autograd.grad(output, [x for x in slots if x is not None and x.requires_grad], cotangent)
+    assert len(grads) == len(expected)
+    for g, e in zip(grads, expected):
+        torch.testing.assert_close(g, e, rtol=1e-13, atol=1e-13)
+
+
+# ---------------------------------------------------------------------------------------------
+# torch.compile
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_compile_fullgraph_equals_eager(name):
+    base = CASES[name](torch.float32)
+    names = differentiable(name, base)
+    fn = public(name)
+
+    def run(*tensors):
+        return fn(**{**base, **dict(zip(names, tensors))})
+
+    eager_inputs = [base[k].clone().requires_grad_() for k in names]
+    compiled_inputs = [base[k].clone().requires_grad_() for k in names]
+    torch._dynamo.reset()
+    compiled = torch.compile(run, fullgraph=True)
+    out = compiled(*compiled_inputs)
+    expected = run(*eager_inputs)
+    torch.testing.assert_close(out, expected, rtol=0, atol=0)
+    cotangent = torch.linspace(-1.0, 1.0, out.numel()).reshape(out.shape)
+    out.backward(cotangent)
+    expected.backward(cotangent)
+    for k, a, b in zip(names, compiled_inputs, eager_inputs):
+        torch.testing.assert_close(a.grad, b.grad, rtol=0, atol=0, msg=k)
+
+
+def test_compile_has_no_graph_breaks():
+    inputs = with_grad(CASES["morph_points"](torch.float32), ["control_displacements"])
+    explanation = torch._dynamo.explain(lambda: torch_bridge.morph_points(**inputs).sum())()
+    assert explanation.graph_break_count == 0 and explanation.graph_count == 1
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_errors_keep_their_type_under_compile(name):
+    fn, inputs = public(name), CASES[name](torch.float32)
+    second = next(k for k in differentiable(name, inputs) if k != "points")
+    torch._dynamo.reset()
+
+    def run(points, other):
+        return fn(**{**inputs, "points": points, second: other})
+
+    compiled = torch.compile(run, fullgraph=True, backend="aot_eager")
+    with pytest.raises(TypeError):
+        compiled(inputs["points"], inputs[second].double())
+    with pytest.raises(ValueError):
+        compiled(inputs["points"][..., :2].contiguous(), inputs[second])
+
+
+def test_compiled_ffd_rejects_a_box_requiring_grad():
+    inputs = CASES["free_form_deform_points"](torch.float32)
+    torch._dynamo.reset()
+    compiled = torch.compile(
+        lambda points, origin: torch_bridge.free_form_deform_points(**{**inputs, "points": points, "origin": origin}),
+        fullgraph=True,
+        backend="aot_eager",
+    )
+    compiled(inputs["points"], torch.zeros(3))
+    with pytest.raises(ValueError, match="origin"):
+        compiled(inputs["points"], torch.zeros(3, requires_grad=True))
+
+
+def test_compiled_unknown_implementation_is_a_key_error():
+    inputs = CASES["morph_points"](torch.float32)
+    torch._dynamo.reset()
+    compiled = torch.compile(lambda p: torch_bridge.morph_points(**{**inputs, "points": p}, implementation="nope"), fullgraph=True, backend="aot_eager")
+    with pytest.raises(KeyError):
+        compiled(inputs["points"])
+
+
+# ---------------------------------------------------------------------------------------------
+# CUDA (run on the device machine)
+# ---------------------------------------------------------------------------------------------
+
+
+def _cuda_available():
+    return torch.cuda.is_available() and any(d.platform == "gpu" for d in jax.devices())
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not _cuda_available(), reason="needs CUDA in both torch and JAX")
+@pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
+def test_cuda_values_gradients_and_devices(name, implementation):
+    base = {**CASES[name](torch.float32), "implementation": implementation}
+    cuda = {k: v.cuda() if isinstance(v, torch.Tensor) else v for k, v in base.items()}
+    names = differentiable(name, base)
+    inputs = with_grad(cuda, names)
+    out = public(name)(**inputs)
+    assert out.device.type == "cuda"
+    cpu = public(name)(**base)
+    torch.testing.assert_close(out.cpu(), cpu, rtol=1e-5, atol=1e-6)
+    grads = torch.autograd.grad(out.square().sum(), [inputs[k] for k in names])
+    assert all(g.device.type == "cuda" for g in grads)
+    second = next(k for k in names if k != "points")
+    with pytest.raises(ValueError, match="device"):
+        public(name)(**{**cuda, second: base[second]})
