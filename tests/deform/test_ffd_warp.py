@@ -1,0 +1,154 @@
+"""free_form_deform_points: Warp backend parity with the JAX specification."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+pytest.importorskip("warp")
+
+import warp_ffi.ffd as warp_ffd  # noqa: E402
+from geomjax import free_form_deform_points  # noqa: E402
+
+BASES = ("bernstein", "bspline", "linear", "cubic_hermite", "quintic_hermite")
+
+
+def resolution_for(basis, dims):
+    return (4, 5, 6)[:dims] if basis == "bspline" else (3, 4, 5)[:dims]
+
+
+def rng_array(seed, shape, low=0.0, high=1.0, dtype=jnp.float64):
+    return jnp.asarray(np.random.default_rng(seed).uniform(low, high, size=shape), dtype)
+
+
+def ffd(points, lattice, basis, implementation, **kwargs):
+    dims = points.shape[-1]
+    kwargs.setdefault("origin", [0.0] * dims)
+    kwargs.setdefault("extent", [1.0] * dims)
+    return free_form_deform_points(points, lattice, basis=basis, implementation=implementation, **kwargs)
+
+
+@pytest.mark.parametrize("dtype", (jnp.float32, jnp.float64))
+@pytest.mark.parametrize("dims", (1, 2, 3))
+def test_values_and_vjps_match_jax(dtype, dims):
+    tol = {"atol": 2e-5, "rtol": 2e-5} if dtype == jnp.float32 else {"atol": 1e-12, "rtol": 1e-12}
+    origin = rng_array(1, (2, dims), -0.5, 0.0, dtype)
+    extent = rng_array(2, (2, dims), 1.0, 2.0, dtype)
+    points = rng_array(3, (2, 30, dims), -0.8, 2.2, dtype)
+    points = points.at[0, 0].set(origin[0]).at[1, 1].set(origin[1] + extent[1])  # corners: inside
+    weights = rng_array(4, (2, 30), -1.0, 2.0, dtype)
+    cotangent = rng_array(5, points.shape, -1.0, 1.0, dtype)
+    for i, basis in enumerate(BASES):
+        lattice = rng_array(10 + i, (2,) + resolution_for(basis, dims) + (dims,), -0.5, 0.5, dtype)
+        outs, vjps = {}, {}
+        for impl in ("jax", "warp"):
+            fn = lambda p, lat, w: ffd(p, lat, basis, impl, origin=origin, extent=extent, point_weights=w)  # noqa: B023,E731
+            outs[impl], pullback = jax.vjp(fn, points, lattice, weights)
+            vjps[impl] = pullback(cotangent)
+        assert outs["warp"].dtype == dtype
+        np.testing.assert_allclose(np.asarray(outs["warp"]), np.asarray(outs["jax"]), **tol, err_msg=basis)
+        for name, a, b in zip(("points", "lattice", "weights"), vjps["warp"], vjps["jax"]):
+            assert a.dtype == dtype
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), **tol, err_msg=f"{basis} {name}")
+
+
+def test_unbatched_shared_box_and_bool_weights():
+    points = rng_array(20, (40, 3), -0.5, 1.5)
+    mask = jnp.asarray(np.random.default_rng(21).uniform(size=40) > 0.3)
+    for basis in BASES:
+        lattice = rng_array(22, resolution_for(basis, 3) + (3,), -0.5, 0.5)
+        kwargs = {"origin": jnp.array([-0.2, 0.0, 0.1]), "extent": [1.2, 1.0, 0.8], "point_weights": mask}
+        np.testing.assert_allclose(
+            np.asarray(ffd(points, lattice, basis, "warp", **kwargs)),
+            np.asarray(ffd(points, lattice, basis, "jax", **kwargs)),
+            atol=1e-13,
+            err_msg=basis,
+        )
+
+
+def test_bspline_corner_value_and_exact_identity():
+    lattice = jnp.zeros((4, 4, 4, 3)).at[1, 1, 1].set(1.0)
+    out = ffd(jnp.zeros((1, 3)), lattice, "bspline", "warp")
+    np.testing.assert_allclose(np.asarray(out), np.full((1, 3), (4 / 6) ** 3), rtol=1e-15)
+    points = rng_array(23, (20, 3), -0.5, 1.5)
+    for basis in BASES:
+        zero = jnp.zeros(resolution_for(basis, 3) + (3,))
+        np.testing.assert_array_equal(np.asarray(ffd(points, zero, basis, "warp")), np.asarray(points))
+
+
+def test_nan_and_outside_points_unchanged_with_zero_gradients():
+    points = jnp.array([[0.3, 0.4, 0.5], [jnp.nan, 0.5, 0.5], [2.0, 0.5, 0.5], [1.0, 1.0, 1.0]])
+    for basis in BASES:
+        lattice = rng_array(24, resolution_for(basis, 3) + (3,), -0.5, 0.5)
+        out = ffd(points, lattice, basis, "warp")
+        np.testing.assert_array_equal(np.asarray(out[1:3]), np.asarray(points[1:3]))
+        g_points, g_lattice = jax.grad(lambda p, lat: jnp.sum(ffd(p, lat, basis, "warp") ** 2), argnums=(0, 1))(points, lattice)
+        keep = jnp.array([0, 3])
+        g_ref = jax.grad(lambda lat: jnp.sum(ffd(points[keep], lat, basis, "jax") ** 2))(lattice)
+        np.testing.assert_allclose(np.asarray(g_lattice), np.asarray(g_ref), atol=1e-13, err_msg=basis)
+        np.testing.assert_array_equal(np.asarray(g_points[2]), 2 * np.asarray(points[2]))
+        assert np.all(np.isfinite(np.asarray(g_points[keep])))
+
+
+def test_jit_vmap_and_vmap_grad_match_jax():
+    points = rng_array(25, (3, 12, 3), -0.2, 1.2)
+    for basis in ("bernstein", "bspline", "quintic_hermite"):
+        lattice = rng_array(26, (3,) + resolution_for(basis, 3) + (3,), -0.3, 0.3)
+        eager = ffd(points, lattice, basis, "warp")
+        jitted = jax.jit(lambda p, lat: ffd(p, lat, basis, "warp"))(points, lattice)  # noqa: B023
+        np.testing.assert_array_equal(np.asarray(jitted), np.asarray(eager))
+        designs = jax.jit(jax.vmap(lambda lat: ffd(points[0], lat, basis, "warp")))(lattice)  # noqa: B023
+        reference = jax.vmap(lambda lat: ffd(points[0], lat, basis, "jax"))(lattice)  # noqa: B023
+        np.testing.assert_allclose(np.asarray(designs), np.asarray(reference), atol=1e-14)
+        both = jax.vmap(lambda p, lat: ffd(p, lat, basis, "warp"))(points, lattice)  # noqa: B023
+        np.testing.assert_allclose(np.asarray(both), np.asarray(eager), atol=1e-14)
+
+        def loss(impl):
+            return lambda p, lat: jnp.sum(jnp.sin(ffd(p, lat, basis, impl)))  # noqa: B023
+
+        g_warp = jax.jit(jax.vmap(jax.grad(loss("warp"), argnums=(0, 1))))(points, lattice)
+        g_jax = jax.vmap(jax.grad(loss("jax"), argnums=(0, 1)))(points, lattice)
+        for a, b in zip(g_warp, g_jax):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-13, err_msg=basis)
+
+
+def test_finite_difference_gradients_first_order():
+    coords = np.array([0.1, 0.2, 0.4, 0.6, 0.8, 0.9])  # away from cell boundaries and faces
+    points = jnp.asarray(np.random.default_rng(27).choice(coords, size=(5, 3)))
+    lattices = tuple(rng_array(28 + i, resolution_for(b, 3) + (3,), -0.3, 0.3) for i, b in enumerate(BASES))
+
+    def fn(p, *lats):
+        return jnp.concatenate([ffd(p, lat, b, "warp") for b, lat in zip(BASES, lats)])
+
+    check_grads(fn, (points,) + lattices, order=1, modes=("rev",), eps=1e-5, atol=1e-6, rtol=1e-6)
+
+
+def test_empty_inputs():
+    for basis in ("bernstein", "linear"):
+        lattice = rng_array(33, resolution_for(basis, 3) + (3,))
+        empty = jnp.zeros((0, 3))
+        assert ffd(empty, lattice, basis, "warp").shape == (0, 3)
+        g = jax.grad(lambda lat: jnp.sum(ffd(empty, lat, basis, "warp")))(lattice)  # noqa: B023
+        np.testing.assert_array_equal(np.asarray(g), np.zeros(lattice.shape))
+        assert ffd(jnp.zeros((0, 4, 3)), jnp.zeros((0,) + lattice.shape), basis, "warp").shape == (0, 4, 3)
+
+
+def test_default_backend_rule_on_cpu(monkeypatch):
+    calls = []
+    original = warp_ffd.free_form_deform_field
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs["basis"])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(warp_ffd, "free_form_deform_field", spy)
+    points = rng_array(34, (6, 3), 0, 1)
+    free_form_deform_points(points, jnp.zeros((4, 4, 4, 3)), origin=[0.0] * 3, extent=[1.0] * 3, basis="bspline")
+    free_form_deform_points(points, jnp.zeros((3, 3, 3, 3)), origin=[0.0] * 3, extent=[1.0] * 3, basis="bernstein")
+    if jax.default_backend() == "cpu":
+        assert calls == ["bspline"]  # CPU: Warp for local bases, JAX for Bernstein (bench_ffd.py)
+    else:
+        assert calls == ["bspline", "bernstein"]
