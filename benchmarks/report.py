@@ -26,6 +26,12 @@ def _cell(value) -> str:
     return "" if value is None else str(value)
 
 
+def _script_for(result_name: str) -> str:
+    """The bench script that wrote a result file (``torch_bridge_large`` -> ``bench_torch_bridge.py``)."""
+    scripts = sorted((p.stem for p in HERE.glob("bench_*.py")), key=len, reverse=True)
+    return next((f"{s}.py" for s in scripts if result_name.startswith(s.removeprefix("bench_"))), "?")
+
+
 def render() -> str:
     parts = []
     for path in sorted((HERE / "results").glob("*.json")):
@@ -33,7 +39,7 @@ def render() -> str:
         rows, machine = data["rows"], data["machine"]
         keys = list(dict.fromkeys(k for row in rows for k in row))
         where = f"{machine['platform']} ({machine['device']}), jax {machine['jax']}"
-        parts.append(f"**{path.stem}** — measured on {where}, by `benchmarks/{path.stem}.py`\n")
+        parts.append(f"**{path.stem}** — measured on {where}, by `benchmarks/{_script_for(path.stem)}`\n")
         parts.append("| " + " | ".join(keys) + " |")
         parts.append("|" + "---|" * len(keys))
         parts.extend("| " + " | ".join(_cell(row.get(k)) for k in keys) + " |" for row in rows)

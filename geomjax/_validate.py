@@ -20,7 +20,8 @@ FLOAT_DTYPES = (jnp.dtype(jnp.float32), jnp.dtype(jnp.float64))
 INDEX_DTYPES = (jnp.dtype(jnp.int32), jnp.dtype(jnp.int64))
 
 
-def _is_array(x) -> bool:
+def is_array(x) -> bool:
+    """Whether ``x`` is an array (JAX, NumPy or array-like with shape and dtype), not a scalar."""
     return isinstance(x, (jax.Array, np.ndarray)) or (
         hasattr(x, "shape") and hasattr(x, "dtype") and not isinstance(x, (numbers.Number, np.generic))
     )
@@ -32,7 +33,7 @@ def as_float_array(name: str, x) -> jax.Array:
     Raises:
         TypeError: ``x`` is not an array, or its dtype is not float32 or float64.
     """
-    if not _is_array(x):
+    if not is_array(x):
         raise TypeError(f"{name} must be a float32 or float64 array, got {type(x).__name__}")
     dtype = jnp.dtype(x.dtype)
     if dtype not in FLOAT_DTYPES:
@@ -42,7 +43,7 @@ def as_float_array(name: str, x) -> jax.Array:
 
 def as_index_array(name: str, x) -> jax.Array:
     """Return ``x`` as a JAX integer array after checking it is int32/int64."""
-    if not _is_array(x):
+    if not is_array(x):
         raise TypeError(f"{name} must be an int32 or int64 array, got {type(x).__name__}")
     dtype = jnp.dtype(x.dtype)
     if dtype not in INDEX_DTYPES:
@@ -139,7 +140,7 @@ def check_point_weights(point_weights, points: jax.Array) -> jax.Array | None:
     """
     if point_weights is None:
         return None
-    if not _is_array(point_weights):
+    if not is_array(point_weights):
         raise TypeError(f"point_weights must be None or a bool/float array, got {type(point_weights).__name__}")
     dtype = jnp.dtype(point_weights.dtype)
     if dtype == jnp.dtype(bool):

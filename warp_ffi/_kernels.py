@@ -13,7 +13,10 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import warp
 
+# Warp 1.19 ignores ``config.quiet``: the log level keeps the init banner and module-load
+# messages off stdout (they would break doctests and pollute benchmark output).
 warp.config.quiet = True
+warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
 warp.init()
 
 WARP_SCALAR = {jnp.dtype(jnp.float32): warp.float32, jnp.dtype(jnp.float64): warp.float64}

@@ -47,8 +47,6 @@ from ._kernels import WARP_SCALAR
 from ._kernels import warp as wp
 
 wp.set_module_options({"enable_backward": False})
-# Warp 1.19 ignores ``config.quiet``; keep per-call module-load messages off stdout.
-wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
 
 __all__ = ["morph_field", "hash_grid"]
 

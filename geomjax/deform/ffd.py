@@ -14,7 +14,7 @@ from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
 from .._validate import (
-    _is_array,
+    is_array,
     as_float_array,
     check_choice,
     check_coordinates,
@@ -223,7 +223,7 @@ def _check_lattice(points: jax.Array, batched: bool, lattice) -> jax.Array:
 def _check_box(name: str, value, points: jax.Array, batched: bool, *, positive: bool) -> jax.Array:
     """A box vector: array ``(D,)`` / aligned ``(B, D)`` (trusted values) or a checked sequence."""
     num_dims = points.shape[-1]
-    if not _is_array(value):
+    if not is_array(value):
         values = check_real_sequence(name, value, num_dims, points.dtype, positive=positive)
         return jnp.asarray(values, dtype=points.dtype)
     value = as_float_array(name, value)

@@ -13,7 +13,7 @@ from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
 from .._validate import (
-    _is_array,
+    is_array,
     as_float_array,
     check_choice,
     check_companion,
@@ -148,7 +148,7 @@ def _radius_array(radius, control_points: jax.Array, batched: bool) -> jax.Array
     num_batch = control_points.shape[0] if batched else 1
     num_controls = control_points.shape[-2]
     shape = (num_batch, num_controls)
-    if not _is_array(radius):
+    if not is_array(radius):
         if num_controls == 0:
             # The scalar is unused without controls: only its type is checked, as in the reference.
             if isinstance(radius, (bool, np.bool_)) or not isinstance(radius, numbers.Real):
