@@ -35,15 +35,12 @@ sequentially over the batch. Arrays are flattened over the batch (1-D arrays ind
 
 import functools
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from ._kernels import WARP_SCALAR
+from ._kernels import WARP_SCALAR, launch_in_chunks
 from ._kernels import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -54,7 +51,6 @@ GRID_DIMS = 3
 CELL_SLACK = 2.0**-6  # relative widening of the cell over the largest radius
 REJECT_SLACK = wp.constant(2.0**-8)  # relative widening of the squared-distance pre-test
 CELL_LIMIT = 2**29  # |cell coordinate| bound (neighbours stay inside int32)
-MIN_CHUNK = 4096  # points per CPU launch chunk
 FAST_MIN_DIST2 = wp.constant(2.0**-100)  # squared distances above this are normal in float32
 
 
@@ -493,61 +489,7 @@ def _sort_order(keys: jax.Array, table_size: int) -> jax.Array:
 
 
 # ---------------------------------------------------------------------------------------------
-# Launching: JAX FFI callables that split CPU launches over a thread pool.
-
-
-def cpu_threads() -> int:
-    """Worker threads for CPU launches (``GEOMJAX_WARP_CPU_THREADS`` overrides the CPU count)."""
-    env = os.environ.get("GEOMJAX_WARP_CPU_THREADS")
-    if env:
-        return max(1, int(env))
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
-
-
-@functools.cache
-def _pool(workers: int) -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="geomjax-warp")
-
-
-def _launch_over_points(kernel, num_batch, num_points, inputs, outputs, accumulated=()):
-    """Launch ``kernel`` over ``(B, N)`` points, in parallel chunks of points on CPU.
-
-    ``inputs`` end just before the kernel's ``offset`` argument. ``accumulated`` lists the
-    positions in ``outputs`` that the kernel adds into: they are zeroed first and, on CPU, each
-    worker gets a private copy that is summed at the end (Warp's CPU atomics are not atomic).
-    """
-    for k in accumulated:
-        outputs[k].zero_()
-    device = outputs[0].device
-    workers = cpu_threads() if device.is_cpu else 1
-    num_chunks = min(4 * workers, max(1, num_points // MIN_CHUNK))
-    if workers == 1 or num_chunks == 1:
-        wp.launch(kernel, dim=(num_batch, num_points), inputs=[*inputs, 0], outputs=outputs, device=device)
-        return
-    workers = min(workers, num_chunks)
-    bounds = [round(c * num_points / num_chunks) for c in range(num_chunks + 1)]
-    private = [outputs]
-    for _ in range(1, workers):
-        copy = list(outputs)
-        for k in accumulated:
-            copy[k] = wp.zeros_like(outputs[k])
-        private.append(copy)
-
-    def work(w):
-        # Contiguous chunks of sorted points keep each worker's buckets in cache.
-        for c in range(w, num_chunks, workers):
-            start, stop = bounds[c], bounds[c + 1]
-            wp.launch(kernel, dim=(num_batch, stop - start), inputs=[*inputs, start], outputs=private[w], device=device)
-
-    for future in [_pool(workers).submit(work, w) for w in range(workers)]:
-        future.result()
-    for k in accumulated:
-        total = outputs[k].numpy()
-        for copy in private[1:]:
-            np.add(total, copy[k].numpy(), out=total)
+# Launching: JAX FFI callables whose CPU launches are split over threads (``launch_in_chunks``).
 
 
 _GRID_NAMES = ("points", "point_cells", "controls", "displacements", "radius", "boxes", "bucket_offsets", "grid_scale")
@@ -586,7 +528,7 @@ def _callables(dtype, dim: int):
     def launch(kernel, inputs, outputs, accumulated=()):
         num_batch = inputs[7].shape[0]
         num_points, table_size = inputs[0].shape[0] // num_batch, inputs[6].shape[0] // num_batch - 1
-        _launch_over_points(kernel, num_batch, num_points, [*inputs, num_points, table_size], outputs, accumulated)
+        launch_in_chunks(kernel, num_batch, num_points, [*inputs, num_points, table_size], outputs, accumulated)
 
     def forward(points, point_cells, controls, displacements, radius, boxes, bucket_offsets, grid_scale,
                 field, ref_index, ref_q, denominator, coincident_count, correction):  # fmt: skip
