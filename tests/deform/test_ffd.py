@@ -135,12 +135,20 @@ def test_bspline_origin_corner_value():
     assert abs(float(out[0, 0]) - 0.2963) < 1e-4
 
 
-def test_bernstein_matches_closed_form_binomial_formula():
+# (3, 8, 6): small enough for the node-by-node value path (derivatives from the contracted form);
+# (8, 7, 6): above that limit, the blocked contraction with an einsum axis (8, 7) and an unrolled
+# axis (6) evaluates the value too.
+@pytest.mark.parametrize("resolution", [(3, 8, 6), (8, 7, 6)])
+def test_bernstein_matches_closed_form_binomial_formula(resolution):
+    assert (math.prod(resolution) <= ffd_module._UNROLLED_MAX_NODES) == (resolution == (3, 8, 6))
     points = rng_array(3, (25, 3), 0.02, 0.98)
     origin, extent = np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.0, 1.0])
-    lattice = rng_array(4, (3, 8, 6, 3), -0.5, 0.5)  # 8 nodes: the einsum path; 6: the unrolled one
+    lattice = rng_array(4, resolution + (3,), -0.5, 0.5)
     out = ffd(points, lattice, "bernstein")
     np.testing.assert_allclose(np.asarray(out), bernstein_closed_form(points, lattice, origin, extent), rtol=0, atol=1e-13)
+    # The jvp of the fast value path is the contracted form's: it must agree with finite
+    # differences of the value, to second order.
+    check_grads(lambda p, lat: ffd(p, lat, "bernstein"), (points, lattice), order=2, modes=("fwd", "rev"))
 
 
 @pytest.mark.parametrize("basis", LOCAL_BASES)
