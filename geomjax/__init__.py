@@ -9,5 +9,19 @@ from .deform.ffd import free_form_deform_points as free_form_deform_points
 from .deform.morph import morph_points as morph_points
 from .deform.rbf import ThinPlateSplineFit as ThinPlateSplineFit
 from .deform.rbf import radial_basis_function_deform_points as radial_basis_function_deform_points
+from .deform.sobolev import sobolev_deform_points as sobolev_deform_points
+from .energy.bending import surface_bending_energy as surface_bending_energy
+from .energy.inversion import simplex_inversion_energy as simplex_inversion_energy
+from .energy.measure import simplex_measure_energy as simplex_measure_energy
+from .energy.strain import simplex_strain_energy as simplex_strain_energy
+from .energy.total_measure import total_measure_energy as total_measure_energy
+from .energy.volume import closed_surface_volume_energy as closed_surface_volume_energy
+from .mesh import Mesh as Mesh
+from .mesh_io import read_mesh as read_mesh
+from .mesh_io import write_mesh as write_mesh
+from .primitives import icosphere as icosphere
+from .primitives import polyline as polyline
+from .primitives import rectangle as rectangle
+from .primitives import tetrahedralized_box as tetrahedralized_box
 
 __version__ = "0.1.0"

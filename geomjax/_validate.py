@@ -210,3 +210,28 @@ def check_choice(name: str, value, choices: Sequence[str]) -> str:
     if not isinstance(value, str) or value not in choices:
         raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}")
     return value
+
+
+def check_topology(name: str, x, points: jax.Array, *, vertices_per_row: Sequence[int]) -> jax.Array:
+    """Check shared integer topology (cells, hinges, triangles) of shape ``(M, K)``.
+
+    ``x`` must be an int32/int64 array (``TypeError`` otherwise, bool included) on the device of
+    ``points``, two-dimensional with ``K`` in ``vertices_per_row`` (``ValueError`` otherwise).
+    Index values are not inspected: that would need a device sync.
+    """
+    x = as_index_array(name, x)
+    check_same_device("points", points, name, x)
+    if x.ndim != 2 or x.shape[1] not in tuple(vertices_per_row):
+        allowed = " or ".join(str(k) for k in vertices_per_row)
+        raise ValueError(f"{name} must have shape (M, K) with K = {allowed} vertex indices per row, got shape {tuple(x.shape)}")
+    return x
+
+
+def check_integer(name: str, value, *, minimum: int) -> int:
+    """A count option must be a Python/NumPy integer (``bool`` is a ``TypeError``) ``>= minimum``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be an integer, got {type(value).__name__}")
+    value = int(value)
+    if value < minimum:
+        raise ValueError(f"{name} must be at least {minimum}, got {value}")
+    return value
