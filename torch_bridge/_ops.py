@@ -39,4 +39,41 @@ OPS: tuple[BridgedOp, ...] = (
         # The lattice box is configuration, not a design variable (reference: ValueError).
         nondifferentiable=("origin", "extent"),
     ),
+    BridgedOp(
+        "sobolev_deform_points(points: Tensor, cells: Tensor, displacement: Tensor, *, length_scale: float,"
+        " fixed_points: Tensor | None = None, max_iterations: int = 128, tolerance: float | None = None,"
+        " implementation: str | None = None) -> Tensor",
+        geomjax.sobolev_deform_points,
+    ),
+    BridgedOp(
+        "simplex_strain_energy(points: Tensor, reference_points: Tensor, cells: Tensor, *,"
+        " lame_lambda: float = 1.0, shear_modulus: float = 1.0, reduction: str = 'sum',"
+        " implementation: str | None = None) -> Tensor",
+        geomjax.simplex_strain_energy,
+    ),
+    BridgedOp(
+        "simplex_measure_energy(points: Tensor, reference_points: Tensor, cells: Tensor, *,"
+        " target_ratio: float = 1.0, reduction: str = 'sum', implementation: str | None = None) -> Tensor",
+        geomjax.simplex_measure_energy,
+    ),
+    BridgedOp(
+        "total_measure_energy(points: Tensor, reference_points: Tensor, cells: Tensor, *,"
+        " target_ratio: float = 1.0, reduction: str = 'sum', implementation: str | None = None) -> Tensor",
+        geomjax.total_measure_energy,
+    ),
+    BridgedOp(
+        "simplex_inversion_energy(points: Tensor, reference_points: Tensor, cells: Tensor, *,"
+        " minimum_jacobian: float = 0.1, reduction: str = 'sum', implementation: str | None = None) -> Tensor",
+        geomjax.simplex_inversion_energy,
+    ),
+    BridgedOp(
+        "surface_bending_energy(points: Tensor, reference_points: Tensor, hinges: Tensor, *,"
+        " reduction: str = 'sum', implementation: str | None = None) -> Tensor",
+        geomjax.surface_bending_energy,
+    ),
+    BridgedOp(
+        "closed_surface_volume_energy(points: Tensor, reference_points: Tensor, triangles: Tensor, *,"
+        " target_ratio: float = 1.0, reduction: str = 'sum', implementation: str | None = None) -> Tensor",
+        geomjax.closed_surface_volume_energy,
+    ),
 )

@@ -77,18 +77,70 @@ def ffd_case(dtype, batch=(), n=6, **_):
     }
 
 
+def _mesh_arrays(mesh):
+    return torch.tensor(np.asarray(mesh.points), dtype=torch.float64), torch.tensor(np.asarray(mesh.cells), dtype=torch.int64)
+
+
+BOX_POINTS, BOX_TETS = _mesh_arrays(geomjax.tetrahedralized_box(1, 1, 1))
+SPHERE_POINTS, SPHERE_TRIANGLES = _mesh_arrays(geomjax.icosphere(0))
+SPHERE_HINGES = torch.tensor(np.asarray(geomjax.icosphere(0).hinges), dtype=torch.int64)
+
+
+def _deformed(gen, reference, batch, dtype, scale=0.08):
+    """``(points, reference_points)`` of a small random deformation of a fixed mesh."""
+    reference = reference.expand(*batch, *reference.shape)
+    return (reference + _randn(gen, reference.shape, torch.float64, scale)).to(dtype), reference.to(dtype).contiguous()
+
+
+def energy_case(reference, topology_name, topology, seed, **options):
+    # Energies act on a fixed small mesh; ``n`` (the point count of the deformation cases) is unused.
+    def case(dtype, batch=(), **_):
+        points, reference_points = _deformed(torch.Generator().manual_seed(seed), reference, batch, dtype)
+        return {"points": points, "reference_points": reference_points, topology_name: topology, **options}
+
+    return case
+
+
+def sobolev_case(dtype, batch=(), **_):
+    gen = torch.Generator().manual_seed(5)
+    points, _ = _deformed(gen, SPHERE_POINTS, batch, dtype, scale=0.02)
+    return {
+        "points": points,
+        "cells": SPHERE_TRIANGLES,
+        "displacement": _randn(gen, points.shape, dtype, 0.1),
+        "length_scale": 0.3,
+    }
+
+
 CASES = {
     "displace_points": displace_case,
     "morph_points": morph_case,
     "radial_basis_function_deform_points": rbf_case,
     "free_form_deform_points": ffd_case,
+    "sobolev_deform_points": sobolev_case,
+    "simplex_strain_energy": energy_case(BOX_POINTS, "cells", BOX_TETS, 6, lame_lambda=0.5),
+    "simplex_measure_energy": energy_case(BOX_POINTS, "cells", BOX_TETS, 7, target_ratio=1.1),
+    "total_measure_energy": energy_case(BOX_POINTS, "cells", BOX_TETS, 8),
+    # The default minimum Jacobian 0.1 is inactive for small deformations: 1.2 makes every term active.
+    "simplex_inversion_energy": energy_case(BOX_POINTS, "cells", BOX_TETS, 9, minimum_jacobian=1.2),
+    "surface_bending_energy": energy_case(SPHERE_POINTS, "hinges", SPHERE_HINGES, 10),
+    "closed_surface_volume_energy": energy_case(SPHERE_POINTS, "triangles", SPHERE_TRIANGLES, 11, target_ratio=0.9),
 }
+# Ops with per-point weights: the deformations x' = x + w u (the weight and empty-input tests).
+WEIGHTED = [name for name in CASES if "point_weights" in CASES[name](torch.float64)]
 # Backends geomjax registers for each op (the bridge adds "torch" -> "jax").
 IMPLEMENTATIONS = {
     "displace_points": ("jax",),
     "morph_points": ("jax", "warp"),
     "radial_basis_function_deform_points": ("jax", "warp"),
     "free_form_deform_points": ("jax", "warp"),
+    "sobolev_deform_points": ("jax", "warp"),
+    "simplex_strain_energy": ("jax", "warp"),
+    "simplex_measure_energy": ("jax", "warp"),
+    "total_measure_energy": ("jax", "warp"),
+    "simplex_inversion_energy": ("jax", "warp"),
+    "surface_bending_energy": ("jax", "warp"),
+    "closed_surface_volume_energy": ("jax", "warp"),
 }
 # A value each op rejects with ValueError (None: the op has no such option).
 BAD_OPTION_VALUES = {
@@ -96,6 +148,13 @@ BAD_OPTION_VALUES = {
     "morph_points": {"radius": -1.0},
     "radial_basis_function_deform_points": {"smoothing": -1.0},
     "free_form_deform_points": {"extent": [1.0, 0.0, 1.0]},
+    "sobolev_deform_points": {"length_scale": -1.0},
+    "simplex_strain_energy": {"shear_modulus": -1.0},
+    "simplex_measure_energy": {"target_ratio": 0.0},
+    "total_measure_energy": {"target_ratio": -1.0},
+    "simplex_inversion_energy": {"minimum_jacobian": -0.5},
+    "surface_bending_energy": {"reduction": "max"},
+    "closed_surface_volume_energy": {"reduction": "max"},
 }
 # Tensor parameters that are configuration, not design variables.
 NON_DIFFERENTIABLE = {"free_form_deform_points": ("origin", "extent")}
@@ -263,7 +322,7 @@ def test_only_requested_gradients_are_returned(name):
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", WEIGHTED)
 def test_bool_weights_are_a_non_differentiable_mask(name):
     base = CASES[name](torch.float64)
     mask = torch.zeros(base["points"].shape[:-1], dtype=torch.bool)
@@ -279,7 +338,7 @@ def test_bool_weights_are_a_non_differentiable_mask(name):
     assert all(g is not None for g in grads)
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", WEIGHTED)
 def test_float_weights_get_gradients(name):
     base = CASES[name](torch.float64)
     inputs = with_grad(base, ["point_weights"])
@@ -290,7 +349,7 @@ def test_float_weights_get_gradients(name):
     torch.testing.assert_close(grad, field.sum(-1), rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", WEIGHTED)
 def test_empty_points(name):
     base = CASES[name](torch.float64, n=0)
     names = differentiable(name, base)
@@ -330,15 +389,20 @@ def test_error_types(name):
     with pytest.raises(TypeError):
         fn(**{**inputs, second: inputs[second].double()})
     with pytest.raises(TypeError):
-        fn(**{**inputs, "point_weights": inputs["point_weights"].double()})
-    with pytest.raises(TypeError):
-        fn(**{**inputs, "point_weights": inputs["point_weights"].to(torch.int64)})
-    with pytest.raises(TypeError):
         fn(**{**inputs, "points": inputs["points"].numpy()})
     with pytest.raises(ValueError):
         fn(**{**inputs, "points": inputs["points"][..., :2]})
-    with pytest.raises(ValueError):
-        fn(**{**inputs, "point_weights": inputs["point_weights"][:-1]})
+    if name in WEIGHTED:
+        with pytest.raises(TypeError):
+            fn(**{**inputs, "point_weights": inputs["point_weights"].double()})
+        with pytest.raises(TypeError):
+            fn(**{**inputs, "point_weights": inputs["point_weights"].to(torch.int64)})
+        with pytest.raises(ValueError):
+            fn(**{**inputs, "point_weights": inputs["point_weights"][:-1]})
+    topology = next((k for k in ("cells", "hinges", "triangles") if k in inputs), None)
+    if topology is not None:
+        with pytest.raises(TypeError):
+            fn(**{**inputs, topology: inputs[topology].to(torch.int16)})
     with pytest.raises(ValueError):
         fn(**{**inputs, "points": inputs["points"][None]})  # batched points, unbatched companions
     with pytest.raises(KeyError):
