@@ -94,12 +94,13 @@ def sobolev_deform_points(
         tolerance: relative residual tolerance ``> 0``; ``None`` means ``1e-6`` (float32) or
             ``1e-10`` (float64).
         implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. ``None`` picks
-            ``"jax"`` on CPU: ``benchmarks/bench_sobolev.py`` measures it faster than the Warp
-            path and than scipy's Jacobi-CG on a preassembled matrix (40,962-vertex sphere). With
+            ``"jax"`` on CPU: on the 40,962-vertex sphere of ``benchmarks/bench_sobolev.py`` it is
+            5-9x faster than the Warp path (whose CPU kernels are slow) and, using both cores,
+            faster than scipy's Jacobi-CG on a preassembled matrix (on par on one core). With
             concrete ``cells`` the JAX path assembles the operator into padded rows from a
             host-side pattern (cached per topology), so each CG product is a few gathers; with
             traced ``cells`` (an argument of ``jit``) it falls back to per-cell scatters, which
-            make a CPU solve about 4x slower. GPUs keep ``"jax"`` until measured there. The Warp path
+            make a CPU solve 4-5x slower. GPUs keep ``"jax"`` until measured there. The Warp path
             (segments, triangles and tetrahedra) runs the same solver with Warp stiffness
             products (deterministic per-vertex gathers, both CPU cores).
 

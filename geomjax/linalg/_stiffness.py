@@ -245,15 +245,16 @@ class CellStiffness(eqx.Module):
     def assemble(cls, local_stiffness: Float[Array, "C V V"], cells: Int[Array, "C V"], num_points: int) -> CellStiffness:
         return cls(off_diagonal_entries(local_stiffness), cells, num_points)
 
-    def _rows(self):
-        a, _ = off_diagonal_pairs(self.cells.shape[1])
-        return self.cells[:, a].reshape(-1)
-
     def __call__(self, x: Float[Array, "N D"]) -> Float[Array, "N D"]:
-        a, b = off_diagonal_pairs(self.cells.shape[1])
-        differences = x[self.cells[:, b]] - x[self.cells[:, a]]  # (C, P, D)
-        contributions = (self.off_diagonal[:, :, None] * differences).reshape(-1, x.shape[-1])
-        return jax.ops.segment_sum(contributions, self._rows(), num_segments=self.num_points)
+        num_cell_points = self.cells.shape[1]
+        _, b = off_diagonal_pairs(num_cell_points)
+        corners = x[self.cells]  # (C, V, D): one gather, differences taken per cell
+        differences = corners[:, b.reshape(num_cell_points, -1)] - corners[:, :, None]  # (C, V, V - 1, D)
+        weights = self.off_diagonal.reshape(-1, num_cell_points, num_cell_points - 1)
+        per_corner = jnp.einsum("cas,casd->cad", weights, differences)
+        return jax.ops.segment_sum(per_corner.reshape(-1, x.shape[-1]), self.cells.reshape(-1), num_segments=self.num_points)
 
     def diagonal(self) -> Float[Array, " N"]:
-        return -jax.ops.segment_sum(self.off_diagonal.reshape(-1), self._rows(), num_segments=self.num_points)
+        num_cell_points = self.cells.shape[1]
+        row_sums = jnp.sum(self.off_diagonal.reshape(-1, num_cell_points, num_cell_points - 1), axis=-1)
+        return -jax.ops.segment_sum(row_sums.reshape(-1), self.cells.reshape(-1), num_segments=self.num_points)

@@ -165,10 +165,10 @@ def test_batched_vmap_jit_and_traced_cells_equal_the_loop():
 
 
 def test_wide_fans_use_the_per_cell_product():
-    angles = np.linspace(0, 2 * np.pi, 201)[:-1]
+    angles = np.linspace(0, 2 * np.pi, 41)[:-1]
     points = jnp.asarray(np.concatenate([[[0.0, 0.0]], np.stack([np.cos(angles), np.sin(angles)], 1)]))
-    rim = np.arange(1, 201)
-    cells = jnp.asarray(np.stack([np.zeros(200, int), rim, rim % 200 + 1], 1))
+    rim = np.arange(1, 41)
+    cells = jnp.asarray(np.stack([np.zeros(40, int), rim, rim % 40 + 1], 1))
     assert row_pattern(np.asarray(cells), points.shape[0]) is None
     displacement = _field(points.shape, seed=8)
     np.testing.assert_allclose(_sobolev(points, cells, displacement, length_scale=0.1),
@@ -182,7 +182,7 @@ def test_float32():
     assert out.dtype == jnp.float32
     reference = dense_sobolev(points.astype(jnp.float64), cells, displacement.astype(jnp.float64), LENGTH)
     np.testing.assert_allclose(out, reference, rtol=0, atol=3e-6)
-    grads = jax.grad(lambda p, d: jnp.sum(_sobolev(p, cells, d) ** 2), argnums=(0, 1))(points, displacement)
+    grads = jax.jit(jax.grad(lambda p, d: jnp.sum(_sobolev(p, cells, d) ** 2), argnums=(0, 1)))(points, displacement)
     assert all(g.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(g))) for g in grads)
 
 
