@@ -9,6 +9,7 @@ from .deform.ffd import free_form_deform_points as free_form_deform_points
 from .deform.morph import morph_points as morph_points
 from .deform.rbf import ThinPlateSplineFit as ThinPlateSplineFit
 from .deform.rbf import radial_basis_function_deform_points as radial_basis_function_deform_points
+from .deform.shrinkwrap import shrinkwrap_points as shrinkwrap_points
 from .deform.sobolev import sobolev_deform_points as sobolev_deform_points
 from .energy.bending import surface_bending_energy as surface_bending_energy
 from .energy.inversion import simplex_inversion_energy as simplex_inversion_energy
@@ -23,5 +24,10 @@ from .primitives import icosphere as icosphere
 from .primitives import polyline as polyline
 from .primitives import rectangle as rectangle
 from .primitives import tetrahedralized_box as tetrahedralized_box
+from .query.bvh import MeshBVH as MeshBVH
+from .query.bvh import build_bvh as build_bvh
+from .query.ray import ray_mesh_intersect as ray_mesh_intersect
+from .query.sdf import signed_distance_field as signed_distance_field
+from .query.voxel import mesh_to_voxel_fraction as mesh_to_voxel_fraction
 
 __version__ = "0.1.0"

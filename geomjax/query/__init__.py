@@ -1,0 +1,1 @@
+"""Mesh queries on a triangle surface: BVH handle, ray casting, signed distance."""

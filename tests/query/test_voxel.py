@@ -1,0 +1,207 @@
+"""mesh_to_voxel_fraction: fraction of each voxel inside a triangle mesh."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from geomjax import icosphere, mesh_to_voxel_fraction
+from geomjax.query.voxel import sample_points
+
+BACKENDS = ["jax", "warp"]
+TRACED_ERRORS = (RuntimeError, ValueError)
+
+# Closed unit cube [0, 1]^3, outward normals.
+CUBE = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+CUBE_FACES = np.array(
+    [[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [2, 3, 7], [2, 7, 6], [0, 4, 7], [0, 7, 3], [1, 2, 6], [1, 6, 5]]
+)
+
+
+def _sphere(subdivisions):
+    mesh = icosphere(subdivisions)
+    return mesh.points, jnp.asarray(mesh.cells, jnp.int32)
+
+
+def _volume(vertices, faces):
+    v, f = np.asarray(vertices, np.float64), np.asarray(faces)
+    return float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6)
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+def test_windows_deep_inside_and_far_outside(implementation):
+    vertices, faces = _sphere(2)
+    # A single 0.1 voxel at the centre of the unit sphere (the reference reads 0 here).
+    centre = mesh_to_voxel_fraction(vertices, faces, [-0.05, -0.05, -0.05], 0.1, (1, 1, 1), implementation=implementation)
+    assert centre.shape == (1, 1, 1) and centre.dtype == jnp.float32 and float(centre[0, 0, 0]) == 1.0
+    inside = mesh_to_voxel_fraction(vertices, faces, [-0.3, -0.2, -0.1], 0.1, (6, 4, 2), implementation=implementation)
+    np.testing.assert_array_equal(inside, 1.0)
+    outside = mesh_to_voxel_fraction(vertices, faces, [3.0, 3.0, 3.0], 0.5, (2, 2, 2), implementation=implementation)
+    np.testing.assert_array_equal(outside, 0.0)
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+def test_z_major_layout_and_stratified_exact_half(implementation):
+    # Box x in [0, 1.5] on a grid of unit voxels starting at x = 0: voxel 0 is inside, voxel 1
+    # half inside (the box face lies on a sub-cube boundary, so stratified samples give exactly
+    # one half whatever the jitter), voxels 2 and 3 outside; y and z spans are full.
+    box = jnp.asarray(CUBE * [1.5, 3.0, 2.0] - [0.0, 0.5, 0.5])
+    fractions = mesh_to_voxel_fraction(box, jnp.asarray(CUBE_FACES), [0.0, 0.0, 0.0], 1.0, (4, 2, 1), n_samples=64, implementation=implementation)
+    assert fractions.shape == (1, 2, 4)
+    np.testing.assert_array_equal(fractions, [[[1.0, 0.5, 0.0, 0.0], [1.0, 0.5, 0.0, 0.0]]])
+
+
+def test_backends_agree_and_seed_is_deterministic():
+    vertices, faces = _sphere(2)
+    args = (vertices, faces, [-1.1, -1.05, -1.0], 0.3, (8, 7, 7))
+    warp = mesh_to_voxel_fraction(*args, n_samples=27, seed=7, implementation="warp")
+    jax_ = mesh_to_voxel_fraction(*args, n_samples=27, seed=7, implementation="jax")
+    np.testing.assert_allclose(warp, jax_, atol=1e-6)
+    assert np.sum((warp > 0) & (warp < 1)) > 50
+    np.testing.assert_array_equal(warp, mesh_to_voxel_fraction(*args, n_samples=27, seed=7, implementation="warp"))
+    assert not np.array_equal(warp, mesh_to_voxel_fraction(*args, n_samples=27, seed=8, implementation="warp"))
+    # Unequal samples per sub-cube (20 samples over 8 sub-cubes) agree too.
+    np.testing.assert_allclose(
+        mesh_to_voxel_fraction(*args, n_samples=20, implementation="warp"), mesh_to_voxel_fraction(*args, n_samples=20, implementation="jax"), atol=1e-6
+    )
+
+
+def test_sample_positions_are_stratified_inside_the_voxel():
+    lower, samples = sample_points(jnp.asarray([1.0, 2.0, 3.0]), 0.5, (2, 1, 1), 27, 3, 42)
+    np.testing.assert_allclose(lower, [[1.0, 2.0, 3.0], [1.5, 2.0, 3.0]])
+    local = (np.asarray(samples) - np.asarray(lower)[:, None, :]) / 0.5
+    assert local.min() >= 0 and local.max() < 1
+    cells = np.floor(local * 3).astype(int)
+    for voxel in range(2):
+        np.testing.assert_array_equal(np.sort(cells[voxel] @ [1, 3, 9]), np.arange(27))
+
+
+def test_sphere_volume_from_fractions():
+    vertices, faces = _sphere(3)
+    h = 2.2 / 20
+    fractions = mesh_to_voxel_fraction(vertices, faces, [-1.1, -1.1, -1.1], h, (20, 20, 20), n_samples=64)
+    exact = _volume(vertices, faces)
+    assert abs(float(fractions.sum()) * h**3 - exact) < 2e-3 * exact
+    assert fractions.min() >= 0 and fractions.max() <= 1
+
+
+def _imperfect_sphere():
+    vertices, faces = _sphere(2)
+    f = np.asarray(faces).copy()
+    f[[3, 50, 120, 200]] = f[[3, 50, 120, 200]][:, ::-1]  # flipped faces
+    f = np.delete(f, [10, 77, 150], axis=0)  # holes
+    return vertices, jnp.asarray(f)
+
+
+def test_open_mode_on_an_imperfect_mesh():
+    vertices, faces = _imperfect_sphere()
+    args = (vertices, faces, [-1.1, -1.1, -1.1], 0.275, (8, 8, 8))
+    warp = mesh_to_voxel_fraction(*args, n_samples=27, open_mesh=True, implementation="warp")
+    jax_ = mesh_to_voxel_fraction(*args, n_samples=27, open_mesh=True, implementation="jax")
+    # Warp's winding number is the Barnes-Hut approximation: a rare sample near the threshold may differ.
+    assert np.abs(np.asarray(warp) - np.asarray(jax_)).max() <= 2 / 27 + 1e-6
+    exact = _volume(*_sphere(2))
+    for fractions in (warp, jax_):
+        assert abs(float(fractions.sum()) * 0.275**3 - exact) < 0.02 * exact
+    # The centre of the holed sphere is still inside.
+    centre = mesh_to_voxel_fraction(vertices, faces, [-0.05] * 3, 0.1, (1, 1, 1), open_mesh=True, implementation="warp")
+    assert float(centre[0, 0, 0]) == 1.0
+    # A high threshold shrinks the inside.
+    strict = mesh_to_voxel_fraction(*args, n_samples=27, open_mesh=True, winding_number_threshold=0.99, implementation="jax")
+    assert float(strict.sum()) <= float(jax_.sum())
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+def test_jit_and_flat_indices(implementation):
+    vertices, faces = _sphere(1)
+    run = jax.jit(lambda v, f: mesh_to_voxel_fraction(v, f, jnp.asarray([-1.0, -1.0, -1.0]), 0.5, (4, 4, 4), n_samples=8, implementation=implementation))
+    eager = mesh_to_voxel_fraction(vertices, faces.reshape(-1), [-1.0, -1.0, -1.0], 0.5, jnp.array([4, 4, 4]), n_samples=8, implementation=implementation)
+    np.testing.assert_array_equal(run(vertices, faces), eager)
+    np.testing.assert_array_equal(run(vertices.astype(jnp.float32), faces), eager)
+
+
+def test_type_errors():
+    v, f = jnp.asarray(CUBE), jnp.asarray(CUBE_FACES)
+    call = lambda **kw: mesh_to_voxel_fraction(  # noqa: E731
+        kw.pop("v", v), kw.pop("f", f), kw.pop("origin", [0.0, 0, 0]), kw.pop("voxel_size", 0.5), kw.pop("grid_dims", (2, 2, 2)), **kw
+    )
+    for kwargs, match in [
+        ({"v": jnp.zeros((8, 3), jnp.int32)}, "mesh_vertices"),
+        ({"f": f.astype(jnp.float32)}, "mesh_indices"),
+        ({"origin": jnp.zeros(3, jnp.int32)}, "origin"),
+        ({"origin": "abc"}, "origin"),
+        ({"voxel_size": True}, "voxel_size"),
+        ({"grid_dims": (2, 2.0, 2)}, "grid_dims"),
+        ({"grid_dims": jnp.array([2.0, 2, 2])}, "grid_dims"),
+        ({"n_samples": 8.0}, "n_samples"),
+        ({"seed": "1"}, "seed"),
+        ({"open_mesh": 1}, "open_mesh"),
+        ({"winding_number_threshold": None}, "winding_number_threshold"),
+    ]:
+        with pytest.raises(TypeError, match=match):
+            call(**kwargs)
+    with pytest.raises(TypeError, match="concrete"):
+        jax.jit(lambda g: mesh_to_voxel_fraction(v, f, [0.0, 0, 0], 0.5, g))(jnp.array([2, 2, 2]))
+
+
+def test_value_errors():
+    v, f = jnp.asarray(CUBE), jnp.asarray(CUBE_FACES)
+    call = lambda **kw: mesh_to_voxel_fraction(  # noqa: E731
+        kw.pop("v", v), kw.pop("f", f), kw.pop("origin", [0.0, 0, 0]), kw.pop("voxel_size", 0.5), kw.pop("grid_dims", (2, 2, 2)), **kw
+    )
+    for kwargs, match in [
+        ({"v": jnp.zeros((0, 3))}, "mesh_vertices must have shape"),
+        ({"v": jnp.zeros((8, 2))}, "mesh_vertices must have shape"),
+        ({"f": jnp.zeros((0, 3), jnp.int32)}, "mesh_indices must have shape"),
+        ({"f": jnp.zeros(7, jnp.int32)}, "mesh_indices must have shape"),
+        ({"f": f.at[0, 0].set(8)}, r"must lie in \[0, 8\)"),
+        ({"f": f.at[0, 0].set(-1)}, r"must lie in \[0, 8\)"),
+        ({"v": v.at[0, 0].set(jnp.nan)}, "must be finite"),
+        ({"origin": [0.0, 0.0]}, "origin must have 3 entries"),
+        ({"origin": jnp.zeros(2)}, "origin must have shape"),
+        ({"voxel_size": 0.0}, "voxel_size must be positive"),
+        ({"voxel_size": float("nan")}, "voxel_size must be finite"),
+        ({"grid_dims": (2, 0, 2)}, "at least 1"),
+        ({"grid_dims": (2, 2)}, "3 entries"),
+        ({"grid_dims": (2**11, 2**11, 2**11)}, "voxels"),
+        ({"n_samples": 0}, "at least 1"),
+        ({"winding_number_threshold": float("inf")}, "finite"),
+        ({"winding_number_accuracy": 0.0}, "positive"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            call(**kwargs)
+    with pytest.raises(KeyError):
+        call(implementation="cuda")
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+def test_traced_out_of_range_indices_raise_without_crashing(implementation):
+    v = jnp.asarray(CUBE)
+    run = jax.jit(lambda f: mesh_to_voxel_fraction(v, f, [0.0, 0, 0], 0.5, (2, 2, 2), n_samples=8, implementation=implementation))
+    with pytest.raises(TRACED_ERRORS, match="mesh_indices must lie in"):
+        jax.block_until_ready(run(jnp.asarray(CUBE_FACES).at[3, 1].set(100)))
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    v_shape=st.sampled_from([(8, 3), (0, 3), (8, 2), (2, 8, 3)]),
+    dtype=st.sampled_from([jnp.float32, jnp.float64, jnp.float16, jnp.int32]),
+    fill=st.sampled_from([0.0, np.nan, np.inf, 1e30, -1e30]),
+    faces=st.sampled_from([CUBE_FACES, CUBE_FACES + 1, -CUBE_FACES, CUBE_FACES.reshape(-1)[:35], np.zeros((4, 3), int)]),
+    voxel_size=st.sampled_from([0.25, 0.0, -1.0, np.nan, 1e-30, 1e30]),
+    grid=st.sampled_from([(2, 3, 1), (0, 1, 1), (1, 1), (2, 2, 2)]),
+    origin=st.sampled_from([[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [1e30, 0.0, 0.0], [0.0]]),
+)
+def test_bad_input_never_crashes(implementation, v_shape, dtype, fill, faces, voxel_size, grid, origin):
+    vertices = jnp.asarray(np.resize(CUBE, v_shape) if len(v_shape) == 2 else np.zeros(v_shape)).astype(dtype)
+    if vertices.size:
+        vertices = vertices.at[(0,) * vertices.ndim].set(jnp.asarray(fill).astype(dtype))
+    try:
+        out = mesh_to_voxel_fraction(vertices, jnp.asarray(faces, jnp.int32), origin, voxel_size, grid, n_samples=8, implementation=implementation)
+    except (TypeError, ValueError, KeyError, RuntimeError):
+        return
+    assert out.shape == tuple(grid[::-1]) and out.dtype == jnp.float32
+    assert np.all((np.asarray(out) >= 0) & (np.asarray(out) <= 1))

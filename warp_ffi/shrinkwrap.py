@@ -1,0 +1,294 @@
+"""Nearest-valid-face search on a Warp BVH, for shrinkwrap (no gradient).
+
+Inputs arrive validated and normalised (no checks here): query points ``(Q, 3)`` and target
+vertices ``(V, 3)`` in the working dtype (float32 or float64), flat in-range triangle indices
+``(3 F,)`` int32 and a validity flag per face.
+
+Warp's meshes are float32, and its closest-point query breaks ties arbitrarily and skips faces
+it considers slivers, so its answer is a starting point. Faces are compared by
+``face_feature``: the distance in the working dtype and the nearest feature (interior, edge or
+vertex), so faces sharing the nearest edge or vertex tie exactly and the lowest index wins.
+
+1. ``mesh_query_point_no_sign`` in the float32 *search frame* gives a face and its distance
+   ``d0`` (an upper bound of the distance to the nearest face, up to float32 rounding).
+2. float32 queries: the faces within a pad (``2**-16`` times the coordinate magnitudes, far
+   above float32 rounding) of Warp's closest point are measured and the best kept, which settles
+   the ties at shared edges and vertices. Two distinct features equally near up to float32
+   rounding keep Warp's choice.
+3. float64 queries (and a float32 query whose step 2 disagrees with Warp): ``mesh_query_sphere``
+   enumerates every face within ``d0 + 2 pad`` and measures each valid one in the working dtype;
+   the best is accepted when the ball reaches a pad beyond its distance (then every nearer face
+   was enumerated), otherwise the radius grows to that (or doubles while nothing valid was met,
+   up to the gate or the whole mesh) and the enumeration repeats. The answer is the brute-force
+   answer in float64, at the cost of a second local traversal; a wrong first guess (an invalid
+   face in a prebuilt BVH, a skipped sliver) costs time, never correctness.
+
+The search frame is ``(x - centre) * inv_scale`` with a power-of-two ``inv_scale``: geomjax maps
+the valid geometry into ``[-1, 1]^3`` so float64 coordinates of any magnitude fit a float32
+BVH; for a prebuilt BVH the frame is the identity. Distances are measured on
+``(vertex - query) * inv_scale`` in the working dtype. On CPU, launches are split over the cores
+(``launch_in_chunks``).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from ._kernels import WARP_SCALAR, launch_in_chunks
+from ._kernels import warp as wp
+from .bvh import build_mesh, mesh_id
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["nearest_valid_faces"]
+
+SEARCH_PAD = wp.constant(2.0**-16)  # relative margin of every float32 radius
+SQRT3 = wp.constant(1.7320508075688772)
+GROWTH = wp.constant(1.0 + 2.0**-20)  # rounds a float64 distance up to float32 safely
+MAX_PASSES = 160  # radius doublings from float32's smallest normal to its largest finite value
+
+
+@wp.func
+def _segment_feature(u: Any, v: Any, u_index: int, v_index: int):
+    """Squared distance from the origin to segment ``uv`` and its nearest feature.
+
+    Returns ``(d2, first, second)``: the feature is the vertex ``(i, i)`` or the edge
+    ``(min index, max index)``, measured from the lower-indexed endpoint.
+    """
+    lo = u
+    hi = v
+    lo_index = u_index
+    hi_index = v_index
+    if v_index < u_index:
+        lo = v
+        hi = u
+        lo_index = v_index
+        hi_index = u_index
+    d = hi - lo
+    length2 = wp.dot(d, d)
+    t = -wp.dot(lo, d)
+    if t <= type(length2)(0.0) or length2 == type(length2)(0.0):
+        return wp.dot(lo, lo), lo_index, lo_index
+    if t >= length2:
+        return wp.dot(hi, hi), hi_index, hi_index
+    p = lo + (t / length2) * d
+    return wp.dot(p, p), lo_index, hi_index
+
+
+@wp.func
+def face_feature(a: Any, b: Any, c: Any, ia: int, ib: int, ic: int, face: int):
+    """Squared distance from the origin to triangle ``abc`` and the nearest feature.
+
+    The feature is ``(-1 - face, -1)`` for the interior (the origin projects inside: plane
+    distance), else that of the nearest edge (``_segment_feature``). Faces sharing the nearest
+    edge or vertex thus report the same feature whatever the rounding of their distances, which
+    is how ties are recognised. ``geomjax.deform.shrinkwrap.face_features`` is the same
+    computation in JAX.
+    """
+    zero = type(a[0])(0.0)
+    n = wp.cross(b - a, c - a)
+    n2 = wp.dot(n, n)
+    if n2 > zero and wp.dot(n, wp.cross(a, b)) >= zero and wp.dot(n, wp.cross(b, c)) >= zero and wp.dot(n, wp.cross(c, a)) >= zero:
+        h = wp.dot(n, a)
+        return h * h / n2, -1 - face, -1
+    d2, first, second = _segment_feature(a, b, ia, ib)
+    d2_bc, first_bc, second_bc = _segment_feature(b, c, ib, ic)
+    if d2_bc < d2:
+        d2 = d2_bc
+        first = first_bc
+        second = second_bc
+    d2_ca, first_ca, second_ca = _segment_feature(c, a, ic, ia)
+    if d2_ca < d2:
+        d2 = d2_ca
+        first = first_ca
+        second = second_ca
+    return d2, first, second
+
+
+@wp.func
+def _nearest_in_ball(
+    mesh: wp.uint64, centre: wp.vec3, radius: float, x: Any, s: Any, vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """Nearest valid face to ``x`` among the faces within ``radius`` of ``centre`` (search frame).
+
+    Returns ``(face, d2)`` (``-1`` when there is none), ``d2`` in search-frame units. Faces at the
+    same feature tie exactly (see ``face_feature``); then, and on equal distances, the lowest
+    index wins.
+    """
+    best = int(-1)
+    best_d2 = type(s)(0.0)
+    best_first = int(0)
+    best_second = int(0)
+    query = wp.mesh_query_sphere(mesh, centre, radius)
+    f = int(0)
+    while wp.mesh_query_next(query, f):
+        if valid[f] != 0:
+            ia = faces[3 * f]
+            ib = faces[3 * f + 1]
+            ic = faces[3 * f + 2]
+            d2, first, second = face_feature((vertices[ia] - x) * s, (vertices[ib] - x) * s, (vertices[ic] - x) * s, ia, ib, ic, f)
+            if best >= 0 and first == best_first and second == best_second:
+                best = wp.min(best, f)
+                best_d2 = wp.min(best_d2, d2)
+            elif best < 0 or d2 < best_d2 or (d2 == best_d2 and f < best):
+                best = f
+                best_d2 = d2
+                best_first = first
+                best_second = second
+    return best, best_d2
+
+
+@wp.kernel
+def _nearest_kernel(
+    mesh_words: wp.array(dtype=wp.uint32),
+    points: wp.array(dtype=Any),
+    vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    valid: wp.array(dtype=wp.int32),
+    search_points: wp.array(dtype=wp.vec3),
+    inv_scale: wp.array(dtype=Any),
+    limits: wp.array(dtype=wp.float32),
+    exact: int,
+    offset: int,
+    nearest: wp.array(dtype=wp.int32),
+):
+    _b, item = wp.tid()
+    i = item + offset
+    mesh = mesh_id(mesh_words)
+    x = points[i]
+    q = search_points[i]
+    s = inv_scale[0]
+    extent = limits[0]
+    base = extent + wp.max(wp.abs(q))
+    # Every vertex lies within sqrt(3) * extent of the frame origin.
+    limit = wp.min(limits[1], wp.length(q) + SQRT3 * extent)
+    limit = limit + SEARCH_PAD * (base + limit)
+    radius = limit
+    guess = wp.mesh_query_point_no_sign(mesh, q, limit)
+    if guess.result:
+        closest = wp.mesh_eval_position(mesh, guess.face, guess.u, guess.v)
+        d0 = wp.length(closest - q)
+        # Two pads: the exact distance may exceed Warp's float32 one by rounding (less than one
+        # pad) and the enumeration must still reach one pad beyond it.
+        radius = wp.min(d0 + 2.0 * SEARCH_PAD * (base + d0), limit)
+        if exact == 0:
+            # Only the faces touching Warp's closest point: they settle ties at shared edges and
+            # vertices; equally near faces elsewhere stay Warp's float32 choice.
+            local, local_d2 = _nearest_in_ball(mesh, closest, SEARCH_PAD * base, x, s, vertices, faces, valid)
+            if local >= 0 and wp.float32(wp.sqrt(local_d2)) <= radius:
+                nearest[i] = local
+                return
+    best = int(-1)
+    for _pass in range(MAX_PASSES):
+        best, best_d2 = _nearest_in_ball(mesh, q, radius, x, s, vertices, faces, valid)
+        if best >= 0:
+            d = wp.float32(wp.sqrt(best_d2)) * GROWTH
+            reach = d + SEARCH_PAD * (base + d)
+            if reach <= radius or radius >= limit:
+                break
+            radius = wp.min(reach + SEARCH_PAD * (base + d), limit)
+        else:
+            if radius >= limit:
+                break
+            radius = wp.min(2.0 * radius + SEARCH_PAD * base, limit)
+    nearest[i] = best
+
+
+@functools.cache
+def _kernel(dtype):
+    scalar = WARP_SCALAR[jnp.dtype(dtype)]
+    vec = wp.types.vector(3, scalar)
+    return wp.overload(
+        _nearest_kernel,
+        [wp.array(dtype=wp.uint32), wp.array(dtype=vec), wp.array(dtype=vec), wp.array(dtype=wp.int32), wp.array(dtype=wp.int32),
+         wp.array(dtype=wp.vec3), wp.array(dtype=scalar), wp.array(dtype=wp.float32), int, int, wp.array(dtype=wp.int32)],
+    )  # fmt: skip
+
+
+# Register both overloads up front: each new overload set recompiles the module.
+for _dtype in WARP_SCALAR:
+    _kernel(_dtype)
+
+
+_SEARCH_NAMES = ("points", "vertices", "faces", "valid", "search_points", "inv_scale", "limits")
+
+
+def _search_types(dtype) -> tuple:
+    scalar = WARP_SCALAR[jnp.dtype(dtype)]
+    vec = wp.array(dtype=wp.types.vector(3, scalar))
+    ints = wp.array(dtype=wp.int32)
+    return (vec, vec, ints, ints, wp.array(dtype=wp.vec3), wp.array(dtype=scalar), wp.array(dtype=wp.float32))
+
+
+@functools.cache
+def _search_callable(dtype, build: bool):
+    """FFI callable: search a prebuilt mesh (``mesh_words``), or build one from its inputs first."""
+    kernel = _kernel(dtype)
+
+    exact = int(jnp.dtype(dtype) == jnp.float64)
+
+    def search(mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
+        inputs = [mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, exact]
+        launch_in_chunks(kernel, 1, points.shape[0], inputs, [nearest], min_chunk=1024)
+
+    if build:
+
+        def body(search_vertices, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
+            mesh = build_mesh(search_vertices, faces, winding_number=False, device=nearest.device)
+            words = wp.array([mesh.id & 0xFFFFFFFF, mesh.id >> 32], dtype=wp.uint32, device=nearest.device)
+            search(words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest)
+            if not nearest.device.is_cpu:
+                # The mesh is freed on return; the launch must be finished by then.
+                wp.synchronize_stream(wp.get_stream(nearest.device))
+
+        head = {"search_vertices": wp.array(dtype=wp.vec3)}
+    else:
+
+        def body(mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
+            search(mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest)
+
+        head = {"mesh_words": wp.array(dtype=wp.uint32)}
+    body.__annotations__ = {**head, **dict(zip(_SEARCH_NAMES, _search_types(dtype), strict=True)), "nearest": wp.array(dtype=wp.int32)}
+    body.__module__ = __name__
+    mode = wp.JaxCallableGraphMode.NONE if build else wp.JaxCallableGraphMode.JAX
+    return wp.jax_callable(body, num_outputs=1, vmap_method="sequential", graph_mode=mode)
+
+
+def nearest_valid_faces(
+    mesh: jax.Array,
+    points: jax.Array,
+    vertices: jax.Array,
+    faces: jax.Array,
+    valid: jax.Array,
+    search_points: jax.Array,
+    inv_scale: jax.Array,
+    limits: jax.Array,
+) -> jax.Array:
+    """Index of the nearest valid face of each query (``-1``: none within the gate).
+
+    Args:
+        mesh: the ``(2,)`` uint32 ``mesh_words`` of a prebuilt BVH (see ``warp_ffi.bvh``), or
+            the float32 ``(V, 3)`` search-frame vertices to build one from in the call.
+        points: ``(Q, 3)`` queries in the working dtype.
+        vertices: ``(V, 3)`` target vertices, same dtype.
+        faces: ``(3 F,)`` int32 in-range indices, in the BVH's face order; invalid faces may hold
+            any in-range indices (they are in the BVH but never selected).
+        valid: ``(F,)`` int32, nonzero for faces that may be selected.
+        search_points: the queries in the float32 search frame ``(x - centre) * inv_scale``,
+            finite (the frame the BVH was built in).
+        inv_scale: ``(1,)`` power of two in the working dtype.
+        limits: ``(2,)`` float32: the largest absolute search-frame coordinate of a vertex of a
+            valid face, and the gate radius in the search frame (a huge value for none).
+
+    Faces farther than the gate may be returned; callers re-gate on the exact distance.
+    """
+    build = mesh.dtype != jnp.uint32
+    (nearest,) = _search_callable(jnp.dtype(points.dtype), build)(
+        mesh, points, vertices, faces, valid, search_points, inv_scale, limits, output_dims={"nearest": points.shape[:1]}
+    )
+    return nearest

@@ -1,0 +1,334 @@
+"""Voxel occupancy fractions of a triangle mesh on a Warp BVH (no gradient).
+
+Inputs arrive validated (no checks here): float32 vertices ``(V, 3)``, flat in-range int32
+indices ``(3 F,)``, and ``params`` = (origin x, y, z, voxel size, winding threshold, winding
+accuracy, mesh-box centre x, y, z, mesh-box half diagonal), float32. Output: ``(nz, ny, nx)``
+float32 fractions, ``nz * ny * nx < 2**31``.
+
+1. One thread per triangle marks the voxels its bounding box meets (the reference's
+   conservative overlap test, slightly widened against rounding; only the value 1 is ever
+   written, so concurrent writes cannot conflict).
+2. One thread walks one grid row along x. An unmarked voxel takes the inside/outside state of
+   its centre; a marked one the stratified Monte-Carlo mean over its samples (the same positions
+   as the JAX path: ``sample_jitter``).
+
+Inside tests query with a radius that always reaches the mesh (the distance to the mesh-box
+centre plus its half diagonal), so a grid window deep inside a mesh reads as inside, unlike the
+reference's ``voxel_size * max(grid_dims)`` radius.
+
+Closed meshes. The state comes from the angle-weighted pseudo-normal sign
+(``mesh_query_point_sign_normal``). Along a row, consecutive unmarked voxels share their state
+(the segment between their centres crosses no triangle), so only the first of each run is
+queried. In a marked voxel only the centre is queried; a sample's state is the centre's flipped
+by the parity of the triangles that the segment centre->sample crosses, counted against the
+triangles whose boxes meet the voxel (every triangle the segment can cross). The crossing test
+uses orientation signs of the segment against each edge computed in a canonical vertex order, so
+a segment through a shared edge or vertex is counted exactly once. A centre within
+``2**-10`` voxel sizes of the surface, where the sign of its side could be rounded away, falls
+back to one query per sample. This is ~8x faster than a query per sample (measured at 64^3).
+
+Open meshes use the fast winding number (``mesh_query_point_sign_winding_number``, mesh built
+with ``support_winding_number=True``): it varies continuously off the surface, so every unmarked
+centre and every sample is queried.
+"""
+
+import functools
+
+import jax
+
+from ._kernels import launch_in_chunks
+from ._kernels import warp as wp
+from .bvh import build_mesh
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["voxel_fractions"]
+
+SIGN_EPSILON = wp.constant(1.0e-3)  # Warp's default: ties within 1e-3 of the mean edge length
+RADIUS_PAD = wp.constant(1.0 + 2.0**-10)
+SURFACE_GUARD = wp.constant(2.0**-10)  # centre-to-surface distance, in voxel sizes, below which samples are queried
+MARK_SLACK = wp.constant(2.0**-16)  # widening of the overlap test, in voxel sizes
+UNIT_FROM_BITS = wp.constant(2.0**-24)
+BATCH = wp.constant(64)  # samples whose crossing parities share one 64-bit mask
+_MIX_A = wp.constant(wp.uint32(0x7FEB352D))
+_MIX_B = wp.constant(wp.uint32(0x846CA68B))
+
+
+@wp.func
+def _mix(h: wp.uint32):
+    # "lowbias32" integer hash (C. Wellons); geomjax.query.voxel uses the same arithmetic.
+    h = h ^ (h >> wp.uint32(16))
+    h = h * _MIX_A
+    h = h ^ (h >> wp.uint32(15))
+    h = h * _MIX_B
+    return h ^ (h >> wp.uint32(16))
+
+
+@wp.func
+def _jitter(seed: wp.uint32, voxel: wp.uint32, sample: wp.uint32, axis: wp.uint32):
+    h = _mix(_mix(_mix(seed) + voxel) + wp.uint32(3) * sample + axis)
+    return wp.float32(h >> wp.uint32(8)) * UNIT_FROM_BITS
+
+
+@wp.func
+def _sample_point(lower: wp.vec3, size: float, strata: int, seed: wp.uint32, voxel: wp.uint32, sample: int):
+    """Sample ``s`` lies in sub-cube ``s mod strata**3`` of the voxel, uniformly jittered."""
+    cell = sample % (strata * strata * strata)
+    s = wp.uint32(sample)
+    jitter = wp.vec3(_jitter(seed, voxel, s, wp.uint32(0)), _jitter(seed, voxel, s, wp.uint32(1)), _jitter(seed, voxel, s, wp.uint32(2)))
+    sub = wp.vec3(float(cell % strata), float((cell / strata) % strata), float(cell / (strata * strata)))
+    return lower + (size / float(strata)) * (sub + jitter)
+
+
+@wp.func
+def _sample_weight(sample: int, num_samples: int, strata: int):
+    """Integer weight of a sample: every sub-cube weighs the same whatever its sample count.
+
+    Sub-cubes hold ``q`` or ``q + 1`` samples; weights ``L / count`` with ``L = q (q + 1)`` (or
+    ``q`` when all counts are equal) are integers, so a fraction is one exact integer ratio and
+    a voxel with every sample inside gives exactly 1.
+    """
+    cells = strata * strata * strata
+    q = num_samples / cells
+    if q * cells == num_samples:
+        return 1
+    if sample % cells < num_samples - q * cells:
+        return q
+    return q + 1
+
+
+@wp.func
+def _weight_total(num_samples: int, strata: int):
+    cells = strata * strata * strata
+    q = num_samples / cells
+    if q * cells == num_samples:
+        return num_samples
+    return cells * q * (q + 1)
+
+
+@wp.func
+def _query_inside(mesh: wp.uint64, p: wp.vec3, centre: wp.vec3, reach: float, open_mesh: int, accuracy: float, threshold: float):
+    """``(inside, distance to the surface)``; the radius always reaches the mesh."""
+    radius = (wp.length(p - centre) + reach) * RADIUS_PAD
+    if open_mesh != 0:
+        q = wp.mesh_query_point_sign_winding_number(mesh, p, radius, accuracy, threshold)
+        return q.result and q.sign < 0.0, wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
+    q = wp.mesh_query_point_sign_normal(mesh, p, radius, SIGN_EPSILON)
+    return q.result and q.sign < 0.0, wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
+
+
+@wp.func
+def _edge_plane(p: wp.vec3, q: wp.vec3, p_index: int, q_index: int):
+    """``(p x q, False)`` or ``(q x p, True)``: the edge's plane through the voxel centre (the
+    origin here), from its lower-indexed endpoint, and whether that reverses the edge.
+
+    The two faces sharing an edge thus get bit-identical planes and opposite flags, so a segment
+    through the edge is on one side for both (zero counts as one fixed side).
+    """
+    if p_index < q_index:
+        return wp.cross(p, q), False
+    return wp.cross(q, p), True
+
+
+@wp.func
+def _queried_fraction(
+    mesh: wp.uint64, lower: wp.vec3, size: float, voxel: wp.uint32, seed: wp.uint32, num_samples: int, strata: int,
+    centre: wp.vec3, reach: float, open_mesh: int, accuracy: float, threshold: float,
+):  # fmt: skip
+    total = int(0)
+    for s in range(num_samples):
+        inside, _distance = _query_inside(mesh, _sample_point(lower, size, strata, seed, voxel, s), centre, reach, open_mesh, accuracy, threshold)
+        if inside:
+            total += _sample_weight(s, num_samples, strata)
+    return float(total) / float(_weight_total(num_samples, strata))
+
+
+@wp.func
+def _crossing_fraction(
+    mesh: wp.uint64, vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), lower: wp.vec3, size: float,
+    voxel: wp.uint32, seed: wp.uint32, num_samples: int, strata: int, mid: wp.vec3, mid_inside: bool,
+):  # fmt: skip
+    slack = MARK_SLACK * size
+    box_lower = lower - wp.vec3(slack, slack, slack)
+    box_upper = lower + wp.vec3(size + slack, size + slack, size + slack)
+    total = int(0)
+    for start in range(0, num_samples, BATCH):
+        count = wp.min(BATCH, num_samples - start)
+        # Sample offsets from the centre, computed once per batch rather than once per triangle.
+        dx = wp.vector(dtype=wp.float32, length=BATCH)
+        dy = wp.vector(dtype=wp.float32, length=BATCH)
+        dz = wp.vector(dtype=wp.float32, length=BATCH)
+        for r in range(count):
+            d = _sample_point(lower, size, strata, seed, voxel, start + r) - mid
+            dx[r] = d[0]
+            dy[r] = d[1]
+            dz[r] = d[2]
+        flips = wp.uint64(0)
+        query = wp.mesh_query_aabb(mesh, box_lower, box_upper)
+        f = int(0)
+        while wp.mesh_query_next(query, f):
+            ia = indices[3 * f]
+            ib = indices[3 * f + 1]
+            ic = indices[3 * f + 2]
+            a = vertices[ia] - mid
+            b = vertices[ib] - mid
+            c = vertices[ic] - mid
+            normal = wp.cross(b - a, c - a)
+            mid_height = -wp.dot(normal, a)
+            plane_ab, flip_ab = _edge_plane(a, b, ia, ib)
+            plane_bc, flip_bc = _edge_plane(b, c, ib, ic)
+            plane_ca, flip_ca = _edge_plane(c, a, ic, ia)
+            for r in range(count):
+                d = wp.vec3(dx[r], dy[r], dz[r])
+                height = mid_height + wp.dot(normal, d)
+                if (mid_height < 0.0) != (height < 0.0):
+                    side_ab = (wp.dot(d, plane_ab) > 0.0) != flip_ab
+                    if side_ab == ((wp.dot(d, plane_bc) > 0.0) != flip_bc) and side_ab == ((wp.dot(d, plane_ca) > 0.0) != flip_ca):
+                        flips = flips ^ (wp.uint64(1) << wp.uint64(r))
+        for r in range(count):
+            crossed = ((flips >> wp.uint64(r)) & wp.uint64(1)) != wp.uint64(0)
+            if crossed != mid_inside:
+                total += _sample_weight(start + r, num_samples, strata)
+    return float(total) / float(_weight_total(num_samples, strata))
+
+
+@wp.kernel
+def _mark_kernel(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    params: wp.array(dtype=wp.float32),
+    nx: int,
+    ny: int,
+    nz: int,
+    offset: int,
+    marked: wp.array(dtype=wp.int32),
+):
+    _b, item = wp.tid()
+    f = item + offset
+    a = vertices[indices[3 * f]]
+    b = vertices[indices[3 * f + 1]]
+    c = vertices[indices[3 * f + 2]]
+    origin = wp.vec3(params[0], params[1], params[2])
+    inv_size = 1.0 / params[3]
+    low = (wp.min(wp.min(a, b), c) - origin) * inv_size - wp.vec3(MARK_SLACK, MARK_SLACK, MARK_SLACK)
+    high = (wp.max(wp.max(a, b), c) - origin) * inv_size + wp.vec3(MARK_SLACK, MARK_SLACK, MARK_SLACK)
+    if not (wp.isfinite(low) and wp.isfinite(high)):
+        return
+    # Clamp in float before converting: cell coordinates of far-away triangles overflow int32.
+    i0 = int(wp.clamp(wp.floor(low[0]), -1.0, float(nx)))
+    j0 = int(wp.clamp(wp.floor(low[1]), -1.0, float(ny)))
+    k0 = int(wp.clamp(wp.floor(low[2]), -1.0, float(nz)))
+    i1 = int(wp.clamp(wp.floor(high[0]), -1.0, float(nx)))
+    j1 = int(wp.clamp(wp.floor(high[1]), -1.0, float(ny)))
+    k1 = int(wp.clamp(wp.floor(high[2]), -1.0, float(nz)))
+    for k in range(wp.max(k0, 0), wp.min(k1, nz - 1) + 1):
+        for j in range(wp.max(j0, 0), wp.min(j1, ny - 1) + 1):
+            for i in range(wp.max(i0, 0), wp.min(i1, nx - 1) + 1):
+                marked[i + nx * (j + ny * k)] = 1
+
+
+@wp.kernel
+def _row_kernel(
+    mesh: wp.uint64,
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    marked: wp.array(dtype=wp.int32),
+    params: wp.array(dtype=wp.float32),
+    nx: int,
+    ny: int,
+    num_samples: int,
+    strata: int,
+    seed: wp.uint32,
+    open_mesh: int,
+    offset: int,
+    fractions: wp.array(dtype=wp.float32),
+):
+    _b, item = wp.tid()
+    row = item + offset
+    j = row % ny
+    k = row / ny
+    origin = wp.vec3(params[0], params[1], params[2])
+    size = params[3]
+    threshold = params[4]
+    accuracy = params[5]
+    centre = wp.vec3(params[6], params[7], params[8])
+    reach = params[9]
+    half = wp.vec3(0.5 * size, 0.5 * size, 0.5 * size)
+    run_state = int(-1)  # state of the current run of unmarked voxels (closed meshes), -1: none
+    for i in range(nx):
+        lower = origin + size * wp.vec3(float(i), float(j), float(k))
+        voxel = i + nx * row
+        if marked[voxel] == 0:
+            if run_state < 0 or open_mesh != 0:
+                mid = lower + half
+                if open_mesh == 0 and wp.max(wp.abs(mid - centre)) > reach:
+                    # Outside the mesh's bounding box: outside a closed mesh, no query needed.
+                    run_state = 0
+                else:
+                    inside, _distance = _query_inside(mesh, mid, centre, reach, open_mesh, accuracy, threshold)
+                    run_state = wp.where(inside, 1, 0)
+            fractions[voxel] = float(run_state)
+            continue
+        run_state = -1
+        fraction = float(0.0)
+        if open_mesh != 0:
+            fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, open_mesh, accuracy, threshold)
+        else:
+            mid = lower + half
+            mid_inside, distance = _query_inside(mesh, mid, centre, reach, open_mesh, accuracy, threshold)
+            if distance < SURFACE_GUARD * size:
+                fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, open_mesh, accuracy, threshold)
+            else:
+                fraction = _crossing_fraction(mesh, vertices, indices, lower, size, wp.uint32(voxel), seed, num_samples, strata, mid, mid_inside)
+        fractions[voxel] = fraction
+
+
+@functools.cache
+def _callable(open_mesh: bool):
+    def fractions_fn(
+        vertices: wp.array(dtype=wp.vec3),
+        indices: wp.array(dtype=wp.int32),
+        params: wp.array(dtype=wp.float32),
+        nx: int,
+        ny: int,
+        nz: int,
+        num_samples: int,
+        strata: int,
+        seed: int,
+        fractions: wp.array(dtype=wp.float32),
+    ):
+        device = fractions.device
+        mesh = build_mesh(vertices, indices, winding_number=open_mesh, device=device)
+        marked = wp.zeros(nx * ny * nz, dtype=wp.int32, device=device)
+        launch_in_chunks(_mark_kernel, 1, indices.shape[0] // 3, [vertices, indices, params, nx, ny, nz], [marked])
+        inputs = [mesh.id, vertices, indices, marked, params, nx, ny, num_samples, strata, wp.uint32(seed % 2**32), int(open_mesh)]
+        launch_in_chunks(_row_kernel, 1, ny * nz, inputs, [fractions], min_chunk=1)
+        if not device.is_cpu:
+            # The mesh and the marks are freed on return; the launches must be finished by then.
+            wp.synchronize_stream(wp.get_stream(device))
+
+    fractions_fn.__module__ = __name__
+    return wp.jax_callable(fractions_fn, num_outputs=1, vmap_method="sequential", graph_mode=wp.JaxCallableGraphMode.NONE)
+
+
+def voxel_fractions(
+    vertices: jax.Array,
+    indices: jax.Array,
+    params: jax.Array,
+    grid_dims: tuple[int, int, int],
+    num_samples: int,
+    strata: int,
+    seed: int,
+    open_mesh: bool,
+) -> jax.Array:
+    """Fractions ``(nz, ny, nx)`` float32 (see the module docstring for the inputs).
+
+    ``strata`` is the largest integer whose cube is at most ``num_samples``; ``seed`` any
+    integer (used modulo ``2**32``).
+    """
+    nx, ny, nz = grid_dims
+    seed = (seed % 2**32 + 2**31) % 2**32 - 2**31  # FFI attributes are int32; the kernel reads it back as uint32
+    (fractions,) = _callable(bool(open_mesh))(
+        vertices, indices, params, nx, ny, nz, num_samples, strata, seed, output_dims={"fractions": (nx * ny * nz,)}
+    )
+    return fractions.reshape(nz, ny, nx)
