@@ -52,7 +52,8 @@ def signed_distance_field(
       (:func:`~geomjax.query.bvh.consistently_oriented_faces`, majority orientation per
       connected piece). This classifies points correctly on open meshes (holes) and on meshes
       with some faces flipped, where the winding number of the raw faces (what other libraries
-      use) is wrong near every flipped face.
+      use) is wrong near every flipped face. The orientation repair runs on the host (NumPy,
+      through ``jax.pure_callback`` under ``jit``): about 0.2 s per call for 80,000 faces.
 
     Args:
         mesh_vertices: ``(V, 3)`` float32 or float64, ``V >= 1``.
