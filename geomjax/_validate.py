@@ -235,3 +235,60 @@ def check_integer(name: str, value, *, minimum: int) -> int:
     if value < minimum:
         raise ValueError(f"{name} must be at least {minimum}, got {value}")
     return value
+
+
+# ---------------------------------------------------------------------------------------------
+# Eager host-side checks, for the ops whose output size depends on the data (sampling, remeshing).
+# Unlike everything above, these look at values: those ops run outside jit anyway.
+
+
+def check_host_surface(
+    op_name: str, mesh_vertices, mesh_indices, *, min_vertices: int = 1, flat_indices: bool = False
+) -> tuple[jax.Array, np.ndarray]:
+    """Finite ``(V, 3)`` vertices and in-range int64 host faces ``(F, 3)``, checked eagerly.
+
+    ``flat_indices`` also accepts a flat ``(3 F,)`` index list (the reference's sampling layout).
+    Tracers are a ``TypeError``: these ops cannot run under ``jit``.
+    """
+    vertices = as_float_array("mesh_vertices", mesh_vertices)
+    if isinstance(vertices, jax.core.Tracer) or isinstance(mesh_indices, jax.core.Tracer):
+        raise TypeError(f"{op_name} runs eagerly (its output size depends on the data): call it outside jax.jit")
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] < min_vertices:
+        raise ValueError(
+            f"mesh_vertices must have shape (V, 3) with V >= {min_vertices}, got {tuple(vertices.shape)}"
+        )
+    if not is_array(mesh_indices):
+        raise TypeError(f"mesh_indices must be an integer array, got {type(mesh_indices).__name__}")
+    dtype = np.dtype(mesh_indices.dtype)
+    if dtype == np.bool_ or dtype.kind not in "iu":
+        raise TypeError(f"mesh_indices must have an integer dtype, got {dtype}")
+    if isinstance(mesh_indices, jax.Array):
+        check_same_device("mesh_vertices", vertices, "mesh_indices", mesh_indices)
+    host = np.asarray(mesh_indices)
+    flat_ok = flat_indices and host.ndim == 1 and host.size % 3 == 0
+    if not (flat_ok or (host.ndim == 2 and host.shape[1] == 3)) or host.size == 0:
+        layouts = "(F, 3) or (3 F,)" if flat_indices else "(F, 3)"
+        raise ValueError(f"mesh_indices must have shape {layouts} with F >= 1, got {tuple(host.shape)}")
+    faces = host.reshape(-1, 3).astype(np.int64)
+    num_vertices = vertices.shape[0]
+    if faces.min() < 0 or faces.max() >= num_vertices:
+        raise ValueError(f"mesh_indices must lie in [0, {num_vertices}), got values in [{faces.min()}, {faces.max()}]")
+    if not bool(jnp.all(jnp.isfinite(vertices))):
+        raise ValueError("mesh_vertices must be finite")
+    return vertices, faces
+
+
+def check_host_vertex_field(op_name: str, name: str, value, vertices: jax.Array) -> np.ndarray | None:
+    """``None`` stays ``None``; otherwise a finite, positive ``(V,)`` field as a float64 host array."""
+    if value is None:
+        return None
+    field = as_float_array(name, value)
+    if isinstance(field, jax.core.Tracer):
+        raise TypeError(f"{op_name} runs eagerly: {name} must be concrete")
+    check_same_device("mesh_vertices", vertices, name, field)
+    if field.shape != (vertices.shape[0],):
+        raise ValueError(f"{name} must have shape ({vertices.shape[0]},), got {tuple(field.shape)}")
+    host = np.asarray(field, np.float64)
+    if not np.all(np.isfinite(host) & (host > 0)):
+        raise ValueError(f"{name} must be finite and positive")
+    return host

@@ -56,7 +56,7 @@ _MIX_B = wp.constant(wp.uint32(0x846CA68B))
 
 @wp.func
 def _mix(h: wp.uint32):
-    # "lowbias32" integer hash (C. Wellons); geomjax.query.voxel uses the same arithmetic.
+    # "lowbias32" integer hash (C. Wellons); bit-identical to geomjax._hashing.lowbias32.
     h = h ^ (h >> wp.uint32(16))
     h = h * _MIX_A
     h = h ^ (h >> wp.uint32(15))

@@ -14,6 +14,7 @@ from jaxtyping import Array, Float, Int
 
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
+from .._hashing import lowbias32
 from .._validate import (
     as_float_array,
     check_bool,
@@ -229,15 +230,6 @@ def _checked_finite(vertices: jax.Array) -> jax.Array:
 # Pure-JAX implementation (the specification; brute force, for small problems).
 
 
-def _mix(h: jax.Array) -> jax.Array:
-    # "lowbias32" integer hash, bit-identical to warp_ffi.voxel._mix.
-    h = h ^ (h >> 16)
-    h = h * jnp.uint32(0x7FEB352D)
-    h = h ^ (h >> 15)
-    h = h * jnp.uint32(0x846CA68B)
-    return h ^ (h >> 16)
-
-
 def sample_points(origin: jax.Array, voxel_size: float, grid: tuple[int, int, int], n_samples: int, strata: int, seed: int):
     """Voxel corners ``(nz*ny*nx, 3)`` and sample points ``(nz*ny*nx, n_samples, 3)``, float32.
 
@@ -253,7 +245,7 @@ def sample_points(origin: jax.Array, voxel_size: float, grid: tuple[int, int, in
     cell = sample % cells
     sub = jnp.stack([cell % strata, (cell // strata) % strata, cell // (strata * strata)], axis=-1).astype(jnp.float32)
     axis = jnp.arange(3, dtype=jnp.uint32)
-    h = _mix(_mix(_mix(jnp.uint32(seed)) + voxel)[:, None, None] + jnp.uint32(3) * sample[None, :, None] + axis)
+    h = lowbias32(lowbias32(lowbias32(jnp.uint32(seed)) + voxel)[:, None, None] + jnp.uint32(3) * sample[None, :, None] + axis)
     jitter = (h >> 8).astype(jnp.float32) * jnp.float32(2.0**-24)
     samples = lower[:, None, :] + (size / jnp.float32(strata)) * (sub[None] + jitter)
     return lower, samples
