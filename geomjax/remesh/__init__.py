@@ -1,0 +1,1 @@
+"""Surface remeshing: integration-mass-weighted centroidal clustering."""

@@ -1,0 +1,1 @@
+"""Surface sampling: Poisson-disk samples, farthest-point sampling, sample and mesh quality measures."""

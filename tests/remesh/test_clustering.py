@@ -1,0 +1,258 @@
+"""remeshing / Mesh.remesh: manifold output on the surface, determinism, parity, density,
+seeding paths, relaxation, barycentric transfer and validation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from geomjax import Mesh, icosphere, rectangle, remeshing, tetrahedralized_box
+from geomjax.remesh.clustering import remesh_with_sources
+from geomjax.sample import quality
+
+pytest.importorskip("warp")
+
+BACKENDS = ["jax", "warp"]
+
+
+def _jittered_sphere(subdivisions=3, dtype=jnp.float64, seed=0):
+    """An icosphere with jittered vertices: no exact symmetric ties between backends."""
+    sphere = icosphere(subdivisions)
+    points = np.asarray(sphere.points)
+    points = points * (1 + 0.03 * np.random.default_rng(seed).uniform(-1, 1, (points.shape[0], 1)))
+    return jnp.asarray(points, dtype), jnp.asarray(np.asarray(sphere.cells), jnp.int32)
+
+
+def _edge_counts(faces):
+    faces = np.asarray(faces)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return counts
+
+
+def _check_surface_mesh(vertices, faces, source_vertices, source_faces, n_clusters, *, closed):
+    vertices, faces = np.asarray(vertices), np.asarray(faces)
+    assert 3 <= vertices.shape[0] <= n_clusters
+    assert faces.ndim == 2 and faces.shape[1] == 3 and faces.min() >= 0 and faces.max() < vertices.shape[0]
+    assert np.all((faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2]))
+    assert np.array_equal(np.unique(faces), np.arange(vertices.shape[0]))  # no unused vertex
+    counts = _edge_counts(faces)
+    assert counts.max() <= 2
+    if closed:
+        assert np.all(counts == 2)
+    gap = quality.surface_distances(vertices, np.asarray(source_vertices), np.asarray(source_faces)).max()
+    assert gap < 1e-5 * np.abs(np.asarray(source_vertices)).max()
+    stats = quality.triangle_quality(vertices, faces)
+    assert stats["radius_ratio_min"] > 0
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_sphere_remesh_is_closed_manifold_on_surface(implementation, dtype):
+    vertices, faces = _jittered_sphere(dtype=dtype)
+    out_vertices, out_faces = remeshing(vertices, faces, 150, implementation=implementation)
+    assert out_vertices.dtype == dtype and out_faces.dtype == jnp.int32
+    _check_surface_mesh(out_vertices, out_faces, vertices, faces, 150, closed=True)
+    # Euler characteristic of a sphere.
+    num_edges = _edge_counts(out_faces).size
+    assert out_vertices.shape[0] - num_edges + out_faces.shape[0] == 2
+
+
+@pytest.mark.parametrize("threshold", [256, 0])
+def test_parity_and_determinism(threshold):
+    """Farthest-point seeding (K <= threshold) and voxel stratification (threshold 0)."""
+    vertices, faces = _jittered_sphere()
+    jax_out = remesh_with_sources(vertices, faces, 120, farthest_point_threshold=threshold, implementation="jax")
+    warp_out = remesh_with_sources(vertices, faces, 120, farthest_point_threshold=threshold, implementation="warp")
+    np.testing.assert_array_equal(jax_out.faces, warp_out.faces)
+    np.testing.assert_allclose(jax_out.vertices, warp_out.vertices, atol=1e-12)
+    # Source faces may differ where a vertex sits on an edge shared by two faces (a tie); the
+    # point they describe may not.
+    for out in (jax_out, warp_out):
+        corners = np.asarray(vertices)[np.asarray(faces)[np.asarray(out.source_faces)]]
+        np.testing.assert_allclose(np.einsum("vk,vkd->vd", np.asarray(out.barycentric), corners), jax_out.vertices, atol=1e-12)
+    again = remesh_with_sources(vertices, faces, 120, farthest_point_threshold=threshold, implementation="warp")
+    np.testing.assert_array_equal(again.vertices, warp_out.vertices)
+    np.testing.assert_array_equal(again.faces, warp_out.faces)
+
+
+def test_source_faces_and_weights_rebuild_the_vertices():
+    vertices, faces = _jittered_sphere()
+    result = remesh_with_sources(vertices, faces, 80)
+    weights = np.asarray(result.barycentric)
+    assert np.all(weights >= -1e-12) and np.allclose(weights.sum(axis=1), 1)
+    corners = np.asarray(vertices)[np.asarray(faces)[np.asarray(result.source_faces)]]
+    np.testing.assert_allclose(np.einsum("vk,vkd->vd", weights, corners), result.vertices, atol=1e-12)
+
+
+def test_reference_algorithm_without_relaxation():
+    vertices, faces = _jittered_sphere()
+    plain = remesh_with_sources(vertices, faces, 150, relaxation_iterations=0)
+    relaxed = remesh_with_sources(vertices, faces, 150)
+    _check_surface_mesh(plain.vertices, plain.faces, vertices, faces, 150, closed=True)
+    plain_stats = quality.triangle_quality(plain.vertices, plain.faces)
+    relaxed_stats = quality.triangle_quality(relaxed.vertices, relaxed.faces)
+    assert relaxed_stats["radius_ratio_mean"] > plain_stats["radius_ratio_mean"]
+    assert relaxed_stats["min_angle_deg_min"] > plain_stats["min_angle_deg_min"]
+
+
+def test_more_iterations_and_clusters():
+    vertices, faces = _jittered_sphere(4)
+    for iterations in (0, 1, 6):
+        out_vertices, out_faces = remeshing(vertices, faces, 600, max_iterations=iterations, farthest_point_threshold=0)
+        _check_surface_mesh(out_vertices, out_faces, vertices, faces, 600, closed=True)
+    out_vertices, _ = remeshing(vertices, faces, vertices.shape[0])
+    assert out_vertices.shape[0] > 0.9 * vertices.shape[0]
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+def test_density_puts_more_vertices_where_it_is_larger(implementation):
+    vertices, faces = _jittered_sphere(3)
+    z = np.asarray(vertices)[:, 2]
+    density = jnp.asarray(np.where(z > 0, 4.0, 1.0))
+    out_vertices, out_faces = remeshing(vertices, faces, 150, vertex_density=density, implementation=implementation)
+    _check_surface_mesh(out_vertices, out_faces, vertices, faces, 150, closed=True)
+    upper = np.sum(np.asarray(out_vertices)[:, 2] > 0)
+    # A 2-D CVT has point density ~ sqrt(rho): 2x here, less with ~4 input vertices per cluster.
+    assert upper > 1.3 * (out_vertices.shape[0] - upper)
+    if implementation == "warp":
+        fine, fine_faces = _jittered_sphere(4)
+        fine_density = jnp.asarray(np.where(np.asarray(fine)[:, 2] > 0, 4.0, 1.0))
+        fine_out, _ = remeshing(fine, fine_faces, 300, vertex_density=fine_density)
+        upper = np.sum(np.asarray(fine_out)[:, 2] > 0)
+        assert upper > 1.7 * (fine_out.shape[0] - upper)
+        # A constant density is uniform; scaling the density changes nothing.
+        uniform = remeshing(vertices, faces, 150, implementation=implementation)
+        constant = remeshing(vertices, faces, 150, vertex_density=jnp.full(z.shape, 3.0), implementation=implementation)
+        np.testing.assert_array_equal(uniform[0], constant[0])
+        scaled = remeshing(vertices, faces, 150, vertex_density=7 * density, implementation=implementation)
+        np.testing.assert_allclose(scaled[0], out_vertices, atol=1e-12)
+
+
+def test_open_surface_keeps_its_boundary():
+    plate = rectangle(24, 24)
+    points = jnp.concatenate([plate.points, 0.1 * jnp.sin(3 * plate.points[:, :1])], axis=1)
+    out_vertices, out_faces = remeshing(points, plate.cells, 120, farthest_point_threshold=0)
+    _check_surface_mesh(out_vertices, out_faces, points, plate.cells, 120, closed=False)
+    counts = _edge_counts(out_faces)
+    assert np.sum(counts == 1) > 0
+    xy = np.asarray(out_vertices)[:, :2]
+    assert xy.min() < 0.1 and xy.max() > 0.9
+
+
+def test_int64_indices_give_int64_faces():
+    vertices, faces = _jittered_sphere(2)
+    _, out_faces = remeshing(vertices, faces.astype(jnp.int64), 40)
+    assert out_faces.dtype == jnp.int64
+    _, out_faces = remeshing(vertices, np.asarray(faces).astype(np.uint16), 40)
+    assert out_faces.dtype == jnp.int32
+
+
+def test_empty_result_is_a_runtime_error():
+    triangle = np.array([[0.0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0]])
+    vertices = jnp.asarray(np.concatenate([triangle + offset for offset in ([0, 0, 0], [5, 0, 0], [0, 5, 0])]))
+    faces = jnp.arange(9, dtype=jnp.int32).reshape(3, 3)
+    with pytest.raises(RuntimeError, match="no triangle"):
+        remeshing(vertices, faces, 3)
+
+
+def test_errors():
+    vertices, faces = _jittered_sphere(1)
+    with pytest.raises(TypeError, match="mesh_vertices"):
+        remeshing(faces, faces, 10)
+    with pytest.raises(TypeError, match="mesh_indices"):
+        remeshing(vertices, faces.astype(jnp.float32), 10)
+    with pytest.raises(ValueError, match="mesh_vertices"):
+        remeshing(vertices[:2], jnp.zeros((1, 3), jnp.int32), 3)
+    with pytest.raises(ValueError, match="mesh_indices"):
+        remeshing(vertices, faces.reshape(-1), 10)
+    with pytest.raises(ValueError, match="mesh_indices"):
+        remeshing(vertices, faces.at[0, 0].set(-1), 10)
+    with pytest.raises(ValueError, match="finite"):
+        remeshing(vertices.at[3, 1].set(jnp.inf), faces, 10)
+    with pytest.raises(ValueError, match="n_clusters"):
+        remeshing(vertices, faces, vertices.shape[0] + 1)
+    with pytest.raises(ValueError, match="n_clusters"):
+        remeshing(vertices, faces, 2)
+    with pytest.raises(TypeError, match="n_clusters"):
+        remeshing(vertices, faces, True)
+    with pytest.raises(ValueError, match="max_iterations"):
+        remeshing(vertices, faces, 10, max_iterations=-1)
+    with pytest.raises(ValueError, match="vertex_density"):
+        remeshing(vertices, faces, 10, vertex_density=jnp.zeros(vertices.shape[0]))
+    with pytest.raises(ValueError, match="vertex_density"):
+        remeshing(vertices, faces, 10, vertex_density=jnp.ones(3))
+    with pytest.raises(TypeError, match="vertex_density"):
+        remeshing(vertices, faces, 10, vertex_density=jnp.ones(vertices.shape[0], jnp.int32))
+    for name in ("search_radius_scale", "voxel_width_scale"):
+        with pytest.raises(ValueError, match=name):
+            remeshing(vertices, faces, 10, **{name: 0.0})
+    with pytest.raises(ValueError, match="hash_grid_resolution"):
+        remeshing(vertices, faces, 10, hash_grid_resolution=257)
+    with pytest.raises(ValueError, match="farthest_point_threshold"):
+        remeshing(vertices, faces, 10, farthest_point_threshold=-1)
+    with pytest.raises(ValueError, match="farthest_point_oversampling"):
+        remeshing(vertices, faces, 10, farthest_point_oversampling=0)
+    with pytest.raises(ValueError, match="zero area"):
+        remeshing(jnp.zeros_like(vertices), faces, 10)
+    with pytest.raises(KeyError):
+        remeshing(vertices, faces, 10, implementation="open3d")
+    with pytest.raises(TypeError, match="eagerly"):
+        jax.jit(lambda v: remeshing(v, faces, 10))(vertices)
+
+
+# ---------------------------------------------------------------------------------------------
+# Mesh.remesh
+
+
+def test_mesh_remesh_transfers_point_data_exactly_for_linear_fields():
+    vertices, faces = _jittered_sphere()
+    field = vertices @ jnp.array([1.0, -2.0, 0.5])
+    mesh = Mesh(vertices, np.asarray(faces), point_data={"f": field, "nested": {"xyz": vertices}, "skip": field})
+    coarse = mesh.remesh(100, point_data_keys=["f", ("nested", "xyz")])
+    assert isinstance(coarse, Mesh) and coarse.n_points <= 100
+    assert set(coarse.point_data) == {"f", "nested"}
+    # Linear fields are reproduced exactly on the (flat) source triangles.
+    np.testing.assert_allclose(coarse.point_data["f"], coarse.points @ jnp.array([1.0, -2.0, 0.5]), atol=1e-12)
+    np.testing.assert_allclose(coarse.point_data["nested"]["xyz"], coarse.points, atol=1e-12)
+    assert _edge_counts(coarse.cells).max() <= 2
+
+
+def test_mesh_remesh_is_differentiable_in_the_field():
+    vertices, faces = _jittered_sphere(2)
+    result = remesh_with_sources(vertices, faces, 40)
+
+    def transferred(field):
+        mesh = Mesh(vertices, np.asarray(faces), point_data={"f": field})
+        return mesh.remesh(40, point_data_keys=["f"]).point_data["f"]
+
+    field = jnp.asarray(np.random.default_rng(0).normal(size=vertices.shape[0]))
+    check_grads(lambda f: jnp.sum(jnp.sin(transferred(f))), (field,), order=1, modes=["rev"])
+    # d(sum of transferred values) / d(field) = total barycentric weight each source vertex gets.
+    expected = np.zeros(vertices.shape[0])
+    np.add.at(expected, np.asarray(faces)[np.asarray(result.source_faces)].reshape(-1), np.asarray(result.barycentric).reshape(-1))
+    np.testing.assert_allclose(jax.grad(lambda f: jnp.sum(transferred(f)))(field), expected, atol=1e-12)
+
+
+def test_mesh_remesh_resolution_field_and_errors():
+    vertices, faces = _jittered_sphere(4)
+    z = vertices[:, 2]
+    mesh = Mesh(vertices, np.asarray(faces), point_data={"r": jnp.where(z > 0, 2.0, 1.0), "i": jnp.arange(z.shape[0])})
+    fine_top = mesh.remesh(300, resolution_field="r")
+    upper = np.sum(np.asarray(fine_top.points)[:, 2] > 0)
+    assert upper > 2.5 * (fine_top.n_points - upper)  # density r^4 = 16x, so about 4x the points
+    by_density = mesh.remesh(300, vertex_density="r")
+    assert np.sum(np.asarray(by_density.points)[:, 2] > 0) < upper
+    with pytest.raises(ValueError, match="at most one"):
+        mesh.remesh(50, vertex_density="r", resolution_field="r")
+    with pytest.raises(KeyError, match="missing"):
+        mesh.remesh(50, point_data_keys=["missing"])
+    with pytest.raises(TypeError, match="floating"):
+        mesh.remesh(50, point_data_keys=["i"])
+    with pytest.raises(TypeError, match="point_data_keys"):
+        mesh.remesh(50, point_data_keys=[3])
+    with pytest.raises(NotImplementedError):
+        tetrahedralized_box(2, 2, 2).remesh(5)
+    with pytest.raises(NotImplementedError):
+        rectangle(3, 3).remesh(5)
