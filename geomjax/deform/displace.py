@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import jax
 from jaxtyping import Array, Bool, Float
 
 from .._dispatch import platform_of, select_implementation

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-import geomjax.mesh as mesh_module
 from geomjax import Mesh, icosphere, polyline, rectangle, tetrahedralized_box
 from geomjax.deform.sobolev import sobolev_deform_points
 from geomjax.energy.bending import surface_bending_energy
