@@ -426,13 +426,14 @@ class LiftedFunction:
         statics: ``(name, schema_type)`` per static option, e.g. ``("kernel", "str")``.
         num_outputs: fixed number of outputs, or ``None`` when the outputs are a list.
         nondifferentiable: leaf indices that must not require grad (``ValueError``).
+        eager_vjp_levels: how many levels of :attr:`vjp` ops to register right away.
 
     The op ``geomjax::<name>`` takes the slots, the statics and ``bool[] requires_grad`` (which
     leaves require grad: the kernel rejects non-differentiable ones, so the reference's
     ``ValueError`` is raised in compiled graphs too) and returns the outputs.
     """
 
-    def __init__(self, name, fn, slots, statics, num_outputs, *, nondifferentiable=()):
+    def __init__(self, name, fn, slots, statics, num_outputs, *, nondifferentiable=(), eager_vjp_levels=0):
         self.name = name
         self.fn = fn
         self.slot_names = tuple(n for n, _ in slots)
@@ -476,6 +477,12 @@ class LiftedFunction:
         op.register_fake(self._fake)
         op.register_autograd(self._backward, setup_context=self._setup_context)
         self.op = op._opoverload
+        # torch.compile looks the backward ops up as ``torch.ops.geomjax.<name>_vjp`` while it
+        # builds the backward graph: registering them then is too late (AttributeError), so the
+        # levels a compiled backward can reach are registered now.
+        level = self
+        for _ in range(eager_vjp_levels):
+            level = level.vjp
 
     # -- calling --------------------------------------------------------------------------------
 
@@ -667,7 +674,7 @@ class LiftedFunction:
 
     @property
     def vjp(self) -> LiftedFunction:
-        """The VJP of this function, lifted the same way (created on first use)."""
+        """The VJP of this function, lifted the same way (created on first use beyond ``eager_vjp_levels``)."""
         if self._vjp is None:
             depth = self.name.count("_vjp") + 1
             self._vjp = LiftedFunction(
@@ -845,6 +852,7 @@ class BridgedOp:
             statics,
             self.num_outputs,
             nondifferentiable=[p.tensor_slot for p in params if p.name in nondifferentiable],
+            eager_vjp_levels=2,  # first and second derivatives, under torch.compile too
         )
 
     def _geomjax_kwargs(self, slots, statics) -> dict:

@@ -115,6 +115,14 @@ def test_third_order_gradients_recurse_through_lifted_vjps():
     assert "bridge_test_toy_vjp_vjp" in str(TOY.lifted.vjp.vjp.op._schema)
 
 
+def test_backward_ops_are_registered_before_first_use():
+    # A compiled backward looks its ops up by name while tracing: they must already exist then.
+    fresh = BridgedOp("bridge_test_registration(points: Tensor) -> Tensor", lambda points: points**2)
+    assert hasattr(torch.ops.geomjax, "bridge_test_registration_vjp")
+    assert hasattr(torch.ops.geomjax, "bridge_test_registration_vjp_vjp")
+    assert fresh.lifted.vjp.vjp.op is torch.ops.geomjax.bridge_test_registration_vjp_vjp.default
+
+
 def test_toy_opcheck_and_compile():
     points = _points().requires_grad_()
     torch.library.opcheck(TOY.lifted.op, (points, 2.0, [3], [True]))
