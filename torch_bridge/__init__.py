@@ -31,9 +31,10 @@ Example:
 """
 
 from ._bridge import make_public_function
-from ._ops import OPS
+from ._ops import MESH_OPS, OPS
+from ._ray import ray_mesh_intersect
 
-__all__ = [op.name for op in OPS]
-globals().update({op.name: make_public_function(op) for op in OPS})
+__all__ = [op.name for op in (*OPS, *MESH_OPS)] + ["ray_mesh_intersect"]
+globals().update({op.name: make_public_function(op) for op in (*OPS, *MESH_OPS)})
 
 del make_public_function

@@ -368,6 +368,12 @@ def _plain_eager(leaves) -> bool:
     return all(x is None or type(x) in _PLAIN_TENSOR_TYPES for x in leaves)
 
 
+def _detached(x):
+    if isinstance(x, (list, tuple)):
+        return type(x)(_detached(v) for v in x)
+    return x.detach() if isinstance(x, torch.Tensor) else x
+
+
 def _group(flat, list_lengths) -> list:
     """Regroup per-leaf values into slots (a list per list slot)."""
     grouped, i = [], 0
@@ -427,13 +433,20 @@ class LiftedFunction:
         num_outputs: fixed number of outputs, or ``None`` when the outputs are a list.
         nondifferentiable: leaf indices that must not require grad (``ValueError``).
         eager_vjp_levels: how many levels of :attr:`vjp` ops to register right away.
+        dynamic_outputs: for ops whose output sizes depend on the data (sampling, remeshing):
+            ``f(slots, statics) -> [(trailing_shape, torch_dtype), ...]``, one per output, whose
+            leading dimension is data-dependent. Such a function runs eagerly (geomjax cannot
+            trace it), is not differentiable (no autograd formula; inputs are detached), and its
+            fake kernel gives each output an unbacked leading size for ``torch.compile``.
 
     The op ``geomjax::<name>`` takes the slots, the statics and ``bool[] requires_grad`` (which
     leaves require grad: the kernel rejects non-differentiable ones, so the reference's
     ``ValueError`` is raised in compiled graphs too) and returns the outputs.
     """
 
-    def __init__(self, name, fn, slots, statics, num_outputs, *, nondifferentiable=(), eager_vjp_levels=0):
+    def __init__(
+        self, name, fn, slots, statics, num_outputs, *, nondifferentiable=(), eager_vjp_levels=0, dynamic_outputs=None
+    ):
         self.name = name
         self.fn = fn
         self.slot_names = tuple(n for n, _ in slots)
@@ -447,6 +460,7 @@ class LiftedFunction:
         self._has_lists = TENSOR_LIST in self.kinds
         self._shape_cache = {}
         self._vjp = None
+        self.dynamic_outputs = dynamic_outputs
 
         self._forward_jit = jax.jit(
             lambda slots, statics, wrt: _forward_with_residuals(fn, self.kinds, slots, statics, wrt),
@@ -458,6 +472,8 @@ class LiftedFunction:
             ),
             static_argnums=(4, 5, 6),
         )
+        if dynamic_outputs is not None:
+            self._forward_jit = lambda slots, statics, wrt: (_distinct_outputs(tuple(fn(slots, statics)), slots), ())
 
         arguments = [f"{kind} {n}" for n, kind in slots] + [f"{t} {n}" for n, t in statics] + ["bool[] requires_grad"]
         if num_outputs is None:
@@ -475,7 +491,8 @@ class LiftedFunction:
             tags=_CUDAGRAPH_UNSAFE,
         )
         op.register_fake(self._fake)
-        op.register_autograd(self._backward, setup_context=self._setup_context)
+        if dynamic_outputs is None:
+            op.register_autograd(self._backward, setup_context=self._setup_context)
         self.op = op._opoverload
         # torch.compile looks the backward ops up as ``torch.ops.geomjax.<name>_vjp`` while it
         # builds the backward graph: registering them then is too late (AttributeError), so the
@@ -488,6 +505,8 @@ class LiftedFunction:
 
     def apply(self, slots, statics):
         """Run the function on tensors; returns its outputs (a tuple, or a list for list outputs)."""
+        if self.dynamic_outputs is not None:  # not differentiable: outputs never require grad
+            slots = tuple(_detached(x) for x in slots)
         leaves = _flatten(slots, self.kinds) if self._has_lists else slots
         requires_grad = [x is not None and x.requires_grad for x in leaves]
         if not _plain_eager(leaves):
@@ -590,7 +609,11 @@ class LiftedFunction:
         statics = _concrete(statics)
         leaves = _flatten(slots, self.kinds)
         device = self._device_of(leaves)
-        specs = self._output_specs(slots, leaves, statics)
+        if self.dynamic_outputs is not None:
+            context = torch.library.get_ctx()
+            specs = [((context.new_dynamic_size(), *trailing), dtype) for trailing, dtype in self.dynamic_outputs(slots, statics)]
+        else:
+            specs = self._output_specs(slots, leaves, statics)
         if specs is None:
             # geomjax rejects these inputs: return placeholders and let the real kernel raise the
             # same exception (with its own type) when the compiled graph runs.
@@ -718,6 +741,9 @@ def _static_normalizer(schema_type: str) -> Callable:
 
     def sequence_of(element):
         def normalize(v):
+            if isinstance(v, torch.Tensor) and element is integer and v.ndim == 1 and not v.is_floating_point():
+                # e.g. grid_dims given as a tensor: its values are shapes, read on the host.
+                v = v.tolist()
             if isinstance(v, (str, bytes)) or not isinstance(v, Sequence):
                 return _BAD
             out = tuple(element(x) for x in v)
@@ -765,10 +791,12 @@ class Parameter:
     static_slot: int | None  # index of its static slot
     static_type: str | None
     optional: bool
+    sequence_slot: int | None = None  # index of its sequence static slot (``int | Sequence[int]``)
 
 
-def _parse_annotation(name: str, annotation: str) -> tuple[bool, str | None, bool]:
-    """``(has_tensor, static_schema_type, optional)`` from an annotation like ``float | Tensor``."""
+def _parse_annotation(name: str, annotation: str) -> tuple[bool, str | None, bool, str | None]:
+    """``(has_tensor, static_schema_type, optional, sequence_schema_type)`` from an annotation like
+    ``float | Tensor``; ``int | Sequence[int]`` gives ``("int", "int[]")`` as the two static forms."""
     has_tensor, optional, statics = False, False, []
     for member in (m.strip() for m in annotation.split("|")):
         if member == "Tensor":
@@ -781,9 +809,12 @@ def _parse_annotation(name: str, annotation: str) -> tuple[bool, str | None, boo
             statics.append(_ANNOTATION_TYPES[member])
         else:
             raise ValueError(f"parameter {name}: unsupported annotation member {member!r}")
-    if len(set(statics)) > 1:
+    forms = sorted(set(statics), key=len)
+    if len(forms) == 2 and forms[1] == forms[0] + "[]":
+        return has_tensor, forms[0], optional, forms[1]
+    if len(forms) > 1:
         raise ValueError(f"parameter {name}: more than one static form in {annotation!r}")
-    return has_tensor, (statics[0] if statics else None), optional
+    return has_tensor, (forms[0] if forms else None), optional, None
 
 
 class BridgedOp:
@@ -798,9 +829,19 @@ class BridgedOp:
             ``tuple[Tensor, ...]``.
         function: the geomjax function with the same parameter names.
         nondifferentiable: tensor parameters that must not require grad (``ValueError``).
+        dynamic_outputs: for a non-differentiable op with data-dependent output sizes,
+            ``f(arguments) -> [(trailing_shape, torch_dtype), ...]`` given the bound arguments by
+            name (tensors may be fake); see :class:`LiftedFunction`.
     """
 
-    def __init__(self, signature: str, function: Callable, *, nondifferentiable: Sequence[str] = ()):
+    def __init__(
+        self,
+        signature: str,
+        function: Callable,
+        *,
+        nondifferentiable: Sequence[str] = (),
+        dynamic_outputs: Callable[[dict], list] | None = None,
+    ):
         tree = ast.parse(f"def {signature}: pass").body[0]
         self.name = tree.name
         self.function = function
@@ -817,15 +858,18 @@ class BridgedOp:
         defaults += [_REQUIRED if d is None else d for d in tree.args.kw_defaults]
         slots, statics, params = [], [], []
         for i, (arg, default) in enumerate(zip([*positional, *keyword_only], defaults)):
-            has_tensor, static_type, optional = _parse_annotation(arg.arg, ast.unparse(arg.annotation))
-            tensor_slot = static_slot = None
+            has_tensor, static_type, optional, sequence_type = _parse_annotation(arg.arg, ast.unparse(arg.annotation))
+            tensor_slot = static_slot = sequence_slot = None
             if has_tensor:
                 tensor_slot = len(slots)
                 slots.append((arg.arg, OPTIONAL_TENSOR if (optional or static_type) else TENSOR))
             if static_type:
                 static_slot = len(statics)
-                schema_type = static_type + ("?" if (optional or has_tensor) else "")
+                schema_type = static_type + ("?" if (optional or has_tensor or sequence_type) else "")
                 statics.append((f"{arg.arg}_value" if has_tensor else arg.arg, schema_type))
+            if sequence_type:
+                sequence_slot = len(statics)
+                statics.append((f"{arg.arg}_sequence", sequence_type + "?"))
             params.append(
                 Parameter(
                     name=arg.arg,
@@ -835,6 +879,7 @@ class BridgedOp:
                     static_slot=static_slot,
                     static_type=statics[static_slot][1] if static_type else None,
                     optional=optional,
+                    sequence_slot=sequence_slot,
                 )
             )
         self.parameters = tuple(params)
@@ -845,6 +890,9 @@ class BridgedOp:
         self._normalizers = tuple(
             _static_normalizer(p.static_type) if p.static_slot is not None else None for p in params
         )
+        self._sequence_normalizers = tuple(
+            _static_normalizer(statics[p.sequence_slot][1]) if p.sequence_slot is not None else None for p in params
+        )
         self.lifted = LiftedFunction(
             self.name,
             self._call_geomjax,
@@ -852,7 +900,11 @@ class BridgedOp:
             statics,
             self.num_outputs,
             nondifferentiable=[p.tensor_slot for p in params if p.name in nondifferentiable],
-            eager_vjp_levels=2,  # first and second derivatives, under torch.compile too
+            # first and second derivatives, under torch.compile too
+            eager_vjp_levels=0 if dynamic_outputs is not None else 2,
+            dynamic_outputs=None
+            if dynamic_outputs is None
+            else lambda slots, statics: dynamic_outputs(self._geomjax_kwargs(slots, statics)),
         )
 
     def _geomjax_kwargs(self, slots, statics) -> dict:
@@ -863,6 +915,8 @@ class BridgedOp:
                 value = slots[p.tensor_slot]
             if value is None and p.static_slot is not None:
                 value = statics[p.static_slot]
+            if value is None and p.sequence_slot is not None:
+                value = statics[p.sequence_slot]
             kwargs[p.name] = value
         return kwargs
 
@@ -874,14 +928,18 @@ class BridgedOp:
         """Split Python arguments (in signature order) into tensor slots and static options."""
         slots = [None] * self._num_slots
         statics = [None] * self._num_statics
-        for p, normalize, value in zip(self.parameters, self._normalizers, values):
+        for p, normalize, normalize_sequence, value in zip(
+            self.parameters, self._normalizers, self._sequence_normalizers, values
+        ):
             if p.tensor_slot is not None and isinstance(value, torch.Tensor):
                 slots[p.tensor_slot] = value
             elif normalize is not None:
-                normalized = normalize(value)
+                normalized, slot = normalize(value), p.static_slot
+                if normalized is _BAD and normalize_sequence is not None:
+                    normalized, slot = normalize_sequence(value), p.sequence_slot
                 if normalized is _BAD:
                     self._raise_for_option(p, values)
-                statics[p.static_slot] = normalized
+                statics[slot] = normalized
             elif value is not None or not p.optional:
                 raise TypeError(
                     f"{self.name}: {p.name} must be a torch.Tensor{' or None' if p.optional else ''}, "
@@ -899,13 +957,15 @@ class BridgedOp:
         value = values[self.parameters.index(parameter)]
         base = parameter.static_type.rstrip("?")
         expected = _OPTION_WORDS.get(base, base)
+        if parameter.sequence_slot is not None:
+            expected += " or " + _OPTION_WORDS[base + "[]"]
         if parameter.tensor_slot is not None:
             expected += " or a torch.Tensor"
-        elif parameter.static_type.endswith("?"):
+        elif parameter.optional:
             expected += " or None"
         error = TypeError(f"{self.name}: {parameter.name} must be {expected}, got {type(value).__name__}")
-        if torch.compiler.is_compiling():
-            raise error
+        if torch.compiler.is_compiling() or self.lifted.dynamic_outputs is not None:
+            raise error  # geomjax cannot be traced here (under compile, or an eager-only op)
         tensors = {
             p.name: v for p, v in zip(self.parameters, values) if p.tensor_slot is not None and isinstance(v, torch.Tensor)
         }

@@ -8,6 +8,8 @@ adding one entry here.
 
 from __future__ import annotations
 
+import torch
+
 import geomjax
 
 from ._bridge import BridgedOp
@@ -75,5 +77,55 @@ OPS: tuple[BridgedOp, ...] = (
         "closed_surface_volume_energy(points: Tensor, reference_points: Tensor, triangles: Tensor, *,"
         " target_ratio: float = 1.0, reduction: str = 'sum', implementation: str | None = None) -> Tensor",
         geomjax.closed_surface_volume_energy,
+    ),
+    BridgedOp(
+        "shrinkwrap_points(points: Tensor, target_points: Tensor, target_faces: Tensor, *,"
+        " offset: float | Tensor = 0.0, max_distance: float | None = None, point_weights: Tensor | None = None,"
+        " implementation: str | None = None) -> Tensor",
+        geomjax.shrinkwrap_points,
+    ),
+)
+
+# Mesh queries, sampling and remeshing: several outputs, integer outputs, or output sizes that
+# depend on the data (those run eagerly and are not differentiable, as in the reference).
+# ray_mesh_intersect is in _ray.py: its reusable BVH needs a wrapper around its op.
+MESH_OPS: tuple[BridgedOp, ...] = (
+    BridgedOp(
+        "signed_distance_field(mesh_vertices: Tensor, mesh_indices: Tensor, input_points: Tensor,"
+        " max_dist: float = 100000000.0, use_sign_winding_number: bool = False, *,"
+        " implementation: str | None = None) -> tuple[Tensor, Tensor, Tensor]",
+        geomjax.signed_distance_field,
+    ),
+    BridgedOp(
+        # grid_dims may also be an integer tensor: its values are read on the host (output shape).
+        "mesh_to_voxel_fraction(mesh_vertices: Tensor, mesh_indices: Tensor, origin: Tensor | Sequence[float],"
+        " voxel_size: float, grid_dims: Sequence[int], n_samples: int = 64, seed: int = 42,"
+        " open_mesh: bool = False, winding_number_threshold: float = 0.5, winding_number_accuracy: float = 2.0, *,"
+        " implementation: str | None = None) -> Tensor",
+        geomjax.mesh_to_voxel_fraction,
+    ),
+    BridgedOp(
+        "mesh_poisson_disk_sample(mesh_vertices: Tensor, mesh_indices: Tensor, min_distance: float = 0.02,"
+        " per_vertex_radius: Tensor | None = None, batch_size: int = 131072, max_points: int = 2000000,"
+        " max_iterations: int = 64, random_seed: int = 42, hash_grid_resolution: int | Sequence[int] = 128,"
+        " mode: str = 'dart_throwing', target_num_points: int | None = None, *,"
+        " implementation: str | None = None) -> Tensor",
+        geomjax.mesh_poisson_disk_sample,
+        dynamic_outputs=lambda arguments: [((3,), torch.float32)],
+    ),
+    BridgedOp(
+        "remeshing(mesh_vertices: Tensor, mesh_indices: Tensor, n_clusters: int, *, max_iterations: int = 4,"
+        " vertex_density: Tensor | None = None, search_radius_scale: float = 1.6, voxel_width_scale: float = 1.15,"
+        " hash_grid_resolution: int = 128, farthest_point_threshold: int = 256, farthest_point_oversampling: int = 4,"
+        " implementation: str | None = None) -> tuple[Tensor, Tensor]",
+        geomjax.remeshing,
+        dynamic_outputs=lambda arguments: [
+            ((3,), arguments["mesh_vertices"].dtype),
+            ((3,), torch.int64 if arguments["mesh_indices"].dtype == torch.int64 else torch.int32),
+        ],
+    ),
+    BridgedOp(
+        "farthest_point_sampling(points: Tensor, num_samples: int, *, start_index: int = 0) -> Tensor",
+        geomjax.farthest_point_sampling,
     ),
 )

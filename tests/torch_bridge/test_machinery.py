@@ -115,6 +115,18 @@ def test_third_order_gradients_recurse_through_lifted_vjps():
     assert "bridge_test_toy_vjp_vjp" in str(TOY.lifted.vjp.vjp.op._schema)
 
 
+def test_scalar_or_sequence_annotations_get_two_static_slots():
+    op = torch_bridge.mesh_poisson_disk_sample.bridged_op
+    schema = str(op.lifted.op._schema)
+    assert "int? hash_grid_resolution," in schema and "int[]? hash_grid_resolution_sequence" in schema
+    defaults = [torch.zeros(3, 3), torch.zeros(1, 3, dtype=torch.int64)] + [p.default for p in op.parameters[2:]]
+    for value, expected in ((16, 16), ((8, 16, 32), (8, 16, 32)), (torch.tensor([8, 16, 32]), (8, 16, 32))):
+        values = list(defaults)
+        values[[p.name for p in op.parameters].index("hash_grid_resolution")] = value
+        slots, statics = op.bind(values)
+        assert op._geomjax_kwargs(slots, statics)["hash_grid_resolution"] == expected
+
+
 def test_backward_ops_are_registered_before_first_use():
     # A compiled backward looks its ops up by name while tracing: they must already exist then.
     fresh = BridgedOp("bridge_test_registration(points: Tensor) -> Tensor", lambda points: points**2)

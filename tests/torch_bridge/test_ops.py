@@ -112,6 +112,20 @@ def sobolev_case(dtype, batch=(), **_):
     }
 
 
+def shrinkwrap_case(dtype, batch=(), n=6, **_):
+    # Points around a coarse sphere (a single target shared by every batch entry).
+    gen = torch.Generator().manual_seed(12)
+    directions = _randn(gen, (*batch, n, 3), torch.float64)
+    radii = _rand(gen, (*batch, n, 1), torch.float64, 0.6, 0.7)
+    return {
+        "points": (directions / directions.norm(dim=-1, keepdim=True) * radii).to(dtype),
+        "target_points": SPHERE_POINTS.to(dtype),
+        "target_faces": SPHERE_TRIANGLES,
+        "offset": torch.tensor(0.05, dtype=dtype),
+        "point_weights": _rand(gen, (*batch, n), dtype, 1.5, -0.25),
+    }
+
+
 CASES = {
     "displace_points": displace_case,
     "morph_points": morph_case,
@@ -125,6 +139,7 @@ CASES = {
     "simplex_inversion_energy": energy_case(BOX_POINTS, "cells", BOX_TETS, 9, minimum_jacobian=1.2),
     "surface_bending_energy": energy_case(SPHERE_POINTS, "hinges", SPHERE_HINGES, 10),
     "closed_surface_volume_energy": energy_case(SPHERE_POINTS, "triangles", SPHERE_TRIANGLES, 11, target_ratio=0.9),
+    "shrinkwrap_points": shrinkwrap_case,
 }
 # Ops with per-point weights: the deformations x' = x + w u (the weight and empty-input tests).
 WEIGHTED = [name for name in CASES if "point_weights" in CASES[name](torch.float64)]
@@ -141,6 +156,7 @@ IMPLEMENTATIONS = {
     "simplex_inversion_energy": ("jax", "warp"),
     "surface_bending_energy": ("jax", "warp"),
     "closed_surface_volume_energy": ("jax", "warp"),
+    "shrinkwrap_points": ("jax", "warp"),
 }
 # A value each op rejects with ValueError (None: the op has no such option).
 BAD_OPTION_VALUES = {
@@ -155,7 +171,14 @@ BAD_OPTION_VALUES = {
     "simplex_inversion_energy": {"minimum_jacobian": -0.5},
     "surface_bending_energy": {"reduction": "max"},
     "closed_surface_volume_energy": {"reduction": "max"},
+    "shrinkwrap_points": {"max_distance": -1.0},
 }
+# Ops whose compiled and eager float32 gradients differ by rounding (one ulp of the largest entry).
+COMPILED_GRADIENT_ATOL = {"shrinkwrap_points": 1.2e-7}
+# geomjax extensions beyond the reference signature (a JAX object, so not bridged).
+GEOMJAX_ONLY_PARAMETERS = {"shrinkwrap_points": ("bvh",)}
+# Ops whose companion arrays are shared by every batch entry (batched points alone are valid).
+SHARED_COMPANIONS = {"shrinkwrap_points"}
 # Tensor parameters that are configuration, not design variables.
 NON_DIFFERENTIABLE = {"free_form_deform_points": ("origin", "extent")}
 
@@ -214,14 +237,14 @@ def op_arguments(name, inputs):
 
 def test_every_op_has_a_case():
     assert set(CASES) == set(NAMES)
-    assert set(torch_bridge.__all__) == set(NAMES)
+    assert set(NAMES) <= set(torch_bridge.__all__)  # the mesh ops are tested in test_mesh_ops.py
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_signature_matches_geomjax(name):
     ours = inspect.signature(public(name)).parameters
     theirs = inspect.signature(getattr(geomjax, name)).parameters
-    assert list(ours) == list(theirs)
+    assert list(ours) == [k for k in theirs if k not in GEOMJAX_ONLY_PARAMETERS.get(name, ())]
     for key in ours:
         assert ours[key].kind == theirs[key].kind, key
         assert ours[key].default == theirs[key].default, key
@@ -403,8 +426,9 @@ def test_error_types(name):
     if topology is not None:
         with pytest.raises(TypeError):
             fn(**{**inputs, topology: inputs[topology].to(torch.int16)})
-    with pytest.raises(ValueError):
-        fn(**{**inputs, "points": inputs["points"][None]})  # batched points, unbatched companions
+    if name not in SHARED_COMPANIONS:
+        with pytest.raises(ValueError):
+            fn(**{**inputs, "points": inputs["points"][None]})  # batched points, unbatched companions
     with pytest.raises(KeyError):
         fn(**inputs, implementation="cuda")
     with pytest.raises(KeyError):
@@ -509,8 +533,11 @@ def test_compile_fullgraph_equals_eager(name):
     cotangent = torch.linspace(-1.0, 1.0, out.numel()).reshape(out.shape)
     out.backward(cotangent)
     expected.backward(cotangent)
+    # The compiled backward runs the VJP op (linearise + pull back in one XLA program); eager
+    # autograd applies the forward's saved residuals. XLA may fuse the two differently.
+    atol = COMPILED_GRADIENT_ATOL.get(name, 0.0)
     for k, a, b in zip(names, compiled_inputs, eager_inputs):
-        torch.testing.assert_close(a.grad, b.grad, rtol=0, atol=0, msg=k)
+        torch.testing.assert_close(a.grad, b.grad, rtol=0, atol=atol, msg=k)
 
 
 def test_compile_has_no_graph_breaks():
