@@ -1,5 +1,6 @@
 """Test-session configuration: float64 available and strict dtype promotion (DESIGN.md)."""
 
+import gc
 import os
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
@@ -25,3 +26,17 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_executables():
+    """Drop JAX's compiled executables after every test module.
+
+    Each XLA CPU executable keeps a few anonymous memory mappings for its JIT-compiled code, and
+    the suite compiles tens of thousands of programs. Kept for the whole session they approach
+    Linux's per-process limit (``vm.max_map_count``, 65530 by default), where the next
+    compilation crashes the interpreter (CI saw SIGSEGV/SIGABRT inside ``backend_compile``).
+    """
+    yield
+    jax.clear_caches()
+    gc.collect()
