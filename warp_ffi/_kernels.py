@@ -107,7 +107,15 @@ def launch_in_chunks(kernel, num_batch: int, num_items: int, inputs: list, outpu
             start, stop = bounds[c], bounds[c + 1]
             warp.launch(kernel, dim=(num_batch, stop - start), inputs=[*inputs, start], outputs=private[w], device=device)
 
-    for future in [_pool(workers).submit(work, w) for w in range(workers)]:
+    futures = []
+    for w in range(workers):
+        try:
+            futures.append(_pool(workers).submit(work, w))
+        except RuntimeError:
+            # The interpreter is exiting (the pool takes no more work) while JAX still runs a
+            # pending computation, e.g. a script that ends without blocking on a result.
+            work(w)
+    for future in futures:
         future.result()
     for k in accumulated:
         total = outputs[k].numpy()

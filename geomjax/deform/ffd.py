@@ -13,6 +13,7 @@ from jaxtyping import Array, Bool, Float
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
+from .._sharding import map_local_shards
 from .._validate import (
     is_array,
     as_float_array,
@@ -121,6 +122,16 @@ def free_form_deform_points(
     (``jax.custom_vjp``). The JAX path evaluates queries in blocks, so memory stays bounded for
     millions of points.
 
+    Sharding: with inputs split over a mesh with ``Explicit`` axes (``jax.make_mesh``'s
+    default), designs (the leading batch axis) and points are computed shard by shard inside
+    ``jax.shard_map`` on both backends (shared inputs replicated, no communication on the way
+    forward; gradients of replicated inputs are summed over devices) and the result keeps the
+    split of ``points``. Under ``Auto`` axes the JAX path is partitioned by XLA and stays local;
+    the Warp kernels are opaque to XLA, which gathers their inputs on every device (correct, not
+    parallel). Under ``Explicit`` axes pass a design batch as the leading axis rather than
+    ``vmap`` over a split axis (Warp's sequential FFI batching is a scan, which JAX refuses
+    there).
+
     Example:
         >>> import jax.numpy as jnp
         >>> import numpy as np
@@ -171,20 +182,32 @@ def free_form_deform_points(
     origin_b = jax.lax.stop_gradient(origin if origin.ndim == 2 else origin[None])
     extent_b = jax.lax.stop_gradient(extent if extent.ndim == 2 else extent[None])
 
+    box_axes = 1 if origin_b.shape[0] == points_b.shape[0] != 1 else 0
+    out = map_local_shards(
+        functools.partial(_deform, basis=basis, backend=backend),
+        (points_b, lattice_b, origin_b, extent_b, weights_b),
+        (2, 1, box_axes, box_axes, 2),
+        out_axes=2,
+    )
+    return remove_batch_axis(out, batched)
+
+
+def _deform(points, lattice, origin, extent, weights, *, basis: str, backend: str) -> jax.Array:
+    """Deformed ``(B, N, D)`` points from normalised inputs (independent per design and point)."""
     if backend == "warp":
         from warp_ffi.ffd import free_form_deform_field
 
-        num_batch = points_b.shape[0]
+        num_batch, _, num_dims = points.shape
         field = free_form_deform_field(
-            points_b,
-            lattice_b,
-            jnp.broadcast_to(origin_b, (num_batch, num_dims)),
-            jnp.broadcast_to(extent_b, (num_batch, num_dims)),
+            points,
+            lattice,
+            jnp.broadcast_to(origin, (num_batch, num_dims)),
+            jnp.broadcast_to(extent, (num_batch, num_dims)),
             basis=basis,
         )
     else:
-        field = ffd_field(points_b, lattice_b, origin_b, extent_b, basis)
-    return remove_batch_axis(apply_point_weights(points_b, field, weights_b), batched)
+        field = ffd_field(points, lattice, origin, extent, basis)
+    return apply_point_weights(points, field, weights)
 
 
 # --------------------------------------------------------------------------------------------

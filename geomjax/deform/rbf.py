@@ -27,6 +27,7 @@ from jaxtyping import Array, Bool, Float
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
+from .._sharding import map_local_shards
 from .._validate import (
     check_bool,
     check_choice,
@@ -116,6 +117,17 @@ def radial_basis_function_deform_points(
     Differentiability: ``points``, ``control_points``, ``control_displacements`` and float
     ``point_weights``, through the solve. JAX path: any order, forward and reverse mode, ``jit``,
     ``vmap``. Warp path: first-order reverse mode (hand-written adjoint kernels), ``jit``, ``vmap``.
+
+    Sharding: with inputs split over a mesh with ``Explicit`` axes (``jax.make_mesh``'s
+    default), designs (the leading batch axis) and points are fitted and evaluated shard by shard (a query split alone
+    repeats the small fit on every device) inside
+    ``jax.shard_map`` on both backends (shared inputs replicated, no communication on the way
+    forward; gradients of replicated inputs are summed over devices) and the result keeps the
+    split of ``points``. Under ``Auto`` axes the JAX path is partitioned by XLA and stays local;
+    the Warp kernels are opaque to XLA, which gathers their inputs on every device (correct, not
+    parallel). Under ``Explicit`` axes pass a design batch as the leading axis rather than
+    ``vmap`` over a split axis (Warp's sequential FFI batching is a scan, which JAX refuses
+    there).
 
     Example:
         >>> import jax.numpy as jnp
@@ -250,7 +262,12 @@ class ThinPlateSplineFit(eqx.Module):
                 jnp.zeros((batch, num_dims, num_dims), dtype),
             )
         else:
-            leaves = _fit_batch(controls, displacements, jnp.asarray(smoothing, controls.dtype), polynomial)
+            smoothing = jnp.asarray(smoothing, controls.dtype)
+            # The fit's singularity check (equinox.error_if) needs check_vma off; both inputs are
+            # sharded along the design axis, so nothing is replicated.
+            leaves = map_local_shards(
+                lambda c, d: _fit_batch(c, d, smoothing, polynomial), (controls, displacements), (1, 1), out_axes=1, check_vma=False
+            )
         leaves = tuple(remove_batch_axis(leaf, batched) for leaf in leaves)
         return cls(*leaves, polynomial=polynomial, batched=batched)
 
@@ -305,7 +322,9 @@ class ThinPlateSplineFit(eqx.Module):
         if points.shape[0] == 0 or points.shape[1] == 0:
             return jnp.zeros(points.shape, points.dtype)
         budget = _BLOCK_BYTES.get(platform_of(points), _DEFAULT_BLOCK_BYTES)
-        return _evaluate(points, *leaves, implementation, budget)
+        return map_local_shards(
+            lambda *arrays: _evaluate(*arrays, implementation, budget), (points, *leaves), (2, 1, 1, 1, 1, 1, 1), out_axes=2
+        )
 
 
 # -- evaluation --------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._dispatch import platform_of, select_implementation
 from .._points import add_batch_axis, remove_batch_axis
+from .._sharding import map_local_shards
 from .._validate import (
     as_index_array,
     check_coordinates,
@@ -131,6 +132,11 @@ def sobolev_deform_points(
     path supports ``jit``, ``vmap`` and first-order reverse mode (a solve-level ``custom_vjp``).
     No gradient flows to ``cells``, ``fixed_points``, ``length_scale`` or ``tolerance``.
 
+    Sharding: designs split over a mesh with ``Explicit`` axes (``jax.make_mesh``'s default) are
+    solved shard by shard on the Warp path (``jax.shard_map``), keeping the split; the JAX path
+    fails there (its per-design loop is a scan over the split axis, which JAX refuses). Under
+    ``Auto`` axes both paths give the unsharded result (XLA gathers the Warp path's inputs).
+
     Example:
         >>> import jax.numpy as jnp, numpy as np
         >>> from geomjax import sobolev_deform_points
@@ -180,18 +186,23 @@ def sobolev_deform_points(
         if backend == "jax" and cells.shape[0]:
             pattern = row_pattern(host_cells, num_points)
     try:
-        out = _deform(
-            x,
-            cells,
-            d,
-            free,
-            pattern,
-            jnp.asarray(length_scale * length_scale, dtype),
-            jnp.asarray(tolerance, dtype),
+        deform = functools.partial(
+            _deform,
+            pattern=pattern,
+            length_scale_squared=jnp.asarray(length_scale * length_scale, dtype),
+            tolerance=jnp.asarray(tolerance, dtype),
             max_iterations=max_iterations,
             backend=backend,
             check_indices=not concrete_cells,
         )
+        if backend == "warp":
+            # Designs are solved independently: explicitly split ones shard by shard (see
+            # _sharding). The solver's error_if needs check_vma off, which is safe as only the
+            # integer cells and non-differentiated constants are replicated. (The JAX path's
+            # lineax solve rejects the per-shard types, see the docstring.)
+            out = map_local_shards(deform, (x, cells, d, free), (1, 0, 1, 1), out_axes=1, check_vma=False)
+        else:
+            out = deform(x, cells, d, free)
     except ValueError as error:
         # A failed runtime check (equinox.error_if) in an executable that already ran once comes
         # back from JAX's C++ dispatch path as ValueError("INTERNAL: CpuCallback error ..."),

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 
 from .._dispatch import platform_of, select_implementation
 from .._points import add_batch_axis
+from .._sharding import map_local_shards
 from .._validate import check_choice, check_coordinates, check_same_shape, check_topology
 
 REDUCTIONS = ("none", "sum", "mean")
@@ -254,5 +255,6 @@ def cell_measures(points: jax.Array, reference_points: jax.Array, cells: jax.Arr
     if backend == "warp":
         from warp_ffi.measure import simplex_measures as warp_simplex_measures
 
-        return warp_simplex_measures(points, reference_points, cells)
+        # Per design: explicitly sharded designs are measured shard by shard (see _sharding).
+        return map_local_shards(warp_simplex_measures, (points, reference_points, cells), (1, 1, 0), out_axes=1)
     return simplex_measures(points, reference_points, cells)

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from .._points import remove_batch_axis
+from .._sharding import map_local_shards
 from ._simplex import (
     all_finite,
     check_energy_inputs,
@@ -81,6 +82,12 @@ def surface_bending_energy(
     wrapped angle). The JAX path supports ``jit``, ``vmap`` and derivatives of any order; the
     Warp path supports ``jit``, ``vmap`` and first-order reverse mode (closed-form adjoint).
 
+    Sharding: designs split over a mesh with ``Explicit`` axes run the Warp kernel shard by shard
+    (``jax.shard_map``), keeping the split; the JAX path is partitioned by XLA under any mesh.
+    Under ``Auto`` axes XLA gathers the Warp kernel's inputs on every device (correct, not
+    parallel). ``vmap`` over an explicitly split axis works on the JAX path only; on the Warp path
+    pass the designs as the leading axis.
+
     Example:
         >>> import jax.numpy as jnp, numpy as np
         >>> from geomjax import surface_bending_energy
@@ -107,7 +114,7 @@ def surface_bending_energy(
     elif backend == "warp":
         from warp_ffi.bending import surface_bending_terms
 
-        terms = surface_bending_terms(points, reference_points, hinges)
+        terms = map_local_shards(surface_bending_terms, (points, reference_points, hinges), (1, 1, 0), out_axes=1)
     else:
         terms = bending_terms(points, reference_points, hinges)
     return reduce_terms(remove_batch_axis(terms, batched), reduction)

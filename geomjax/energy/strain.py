@@ -9,6 +9,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from .._points import remove_batch_axis
+from .._sharding import map_local_shards
 from .._validate import check_real_scalar
 from ._simplex import (
     SIMPLEX_VERTICES,
@@ -93,6 +94,12 @@ def simplex_strain_energy(
     path supports ``jit``, ``vmap`` and derivatives of any order (Hessian-vector products); the
     Warp path supports ``jit``, ``vmap`` and first-order reverse mode (hand-written adjoint).
 
+    Sharding: designs split over a mesh with ``Explicit`` axes run the Warp kernel shard by shard
+    (``jax.shard_map``), keeping the split; the JAX path is partitioned by XLA under any mesh.
+    Under ``Auto`` axes XLA gathers the Warp kernel's inputs on every device (correct, not
+    parallel). ``vmap`` over an explicitly split axis works on the JAX path only; on the Warp path
+    pass the designs as the leading axis.
+
     Example:
         >>> import jax.numpy as jnp, numpy as np
         >>> from geomjax import simplex_strain_energy
@@ -128,7 +135,12 @@ def simplex_strain_energy(
     elif backend == "warp":
         from warp_ffi.strain import simplex_strain_terms
 
-        terms = simplex_strain_terms(points, reference_points, cells, shear_modulus=shear_modulus, bulk_term=bulk_term)
+        terms = map_local_shards(
+            lambda p, r, c: simplex_strain_terms(p, r, c, shear_modulus=shear_modulus, bulk_term=bulk_term),
+            (points, reference_points, cells),
+            (1, 1, 0),
+            out_axes=1,
+        )
     else:
         terms = strain_terms(points, reference_points, cells, shear_modulus, bulk_term)
     return reduce_terms(remove_batch_axis(terms, batched), reduction)

@@ -80,6 +80,12 @@ def total_measure_energy(
     ``vmap`` and derivatives of any order; the Warp path supports ``jit``, ``vmap`` and
     first-order reverse mode (hand-written adjoint).
 
+    Sharding: designs split over a mesh with ``Explicit`` axes run the Warp kernel shard by shard
+    (``jax.shard_map``), keeping the split; the JAX path is partitioned by XLA under any mesh.
+    Under ``Auto`` axes XLA gathers the Warp kernel's inputs on every device (correct, not
+    parallel). ``vmap`` over an explicitly split axis works on the JAX path only; on the Warp path
+    pass the designs as the leading axis.
+
     Example:
         >>> import jax.numpy as jnp, numpy as np
         >>> from geomjax import total_measure_energy

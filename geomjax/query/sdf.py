@@ -11,6 +11,7 @@ from jaxtyping import Array, Float, Int
 
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
+from .._sharding import map_local_shards
 from .._validate import as_float_array, check_bool, check_real_scalar, check_same_device, check_same_dtype
 from ._triangle import closest_point_on_triangle
 from .bvh import _extent, bvh_vertices32, checked_mesh, closest_faces_brute_force, consistently_oriented_faces, replayed, sliver_faces
@@ -84,6 +85,13 @@ def signed_distance_field(
     face within the float32 answer's distance is measured again in float64), while the sign of
     points within float32 rounding of the surface (where the distance is ~0) comes from float32.
 
+    Sharding: with ``input_points`` split over a mesh with ``Explicit`` axes (``jax.make_mesh``'s
+    default), each device measures its own points against the whole (replicated) mesh inside
+    ``jax.shard_map``, on both backends, and the outputs keep the points' split; with winding
+    signs every device repairs the face orientations itself (host callback). Under ``Auto`` axes
+    XLA partitions the JAX path, and gathers the Warp path's points on every device (correct,
+    not parallel; the outputs come back replicated).
+
     Raises:
         TypeError: non-float or non-integer arrays, mismatched dtypes, a non-real or ``bool``
             ``max_dist``, a non-bool ``use_sign_winding_number``.
@@ -116,9 +124,13 @@ def signed_distance_field(
     backend = select_implementation(_NAME, implementation, backends=("jax", "warp"), default=DEFAULT_IMPLEMENTATION, platform=platform_of(vertices))
     index_dtype = jnp.int64 if jnp.dtype(mesh_indices.dtype) == jnp.int64 else jnp.int32
 
-    shape = points.shape[:-1]
-    sdf, closest, face_ids = _signed_distance(vertices, faces, points.reshape(-1, 3), max_dist=max_dist, winding=winding, backend=backend)
-    return sdf.reshape(shape), closest.reshape(shape + (3,)), face_ids.astype(index_dtype).reshape(shape)
+    def local(vertices, faces, points):
+        shape = points.shape[:-1]
+        sdf, closest, face_ids = _signed_distance(vertices, faces, points.reshape(-1, 3), max_dist=max_dist, winding=winding, backend=backend)
+        return sdf.reshape(shape), closest.reshape(shape + (3,)), face_ids.astype(index_dtype).reshape(shape)
+
+    # Queries are independent: sharded points are measured shard by shard against the whole mesh.
+    return map_local_shards(local, (vertices, faces, points), (0, 0, points.ndim - 1), out_axes=points.ndim - 1)
 
 
 @functools.partial(jax.jit, static_argnames=("max_dist", "winding", "backend"))

@@ -1,0 +1,359 @@
+"""Sharded-vs-unsharded cases, run on 4 host devices in one subprocess by ``tests/test_sharding.py``.
+
+``python -m tests.sharding_cases RESULT.json`` needs ``XLA_FLAGS=--xla_force_host_platform_device_count=4``
+set before JAX starts (the parent test sets it). Every case runs an op under ``jax.jit`` on
+inputs sharded over a 4-device mesh and on the same inputs on one device, and compares values
+(and gradients for some) and the output sharding. Meshes: ``jax.make_mesh``'s default
+``Explicit`` axes (sharding in types: the ops run per shard through ``jax.shard_map``) and
+``Auto`` axes (XLA's partitioner decides). ``CASES`` maps each case name to a function that
+raises ``AssertionError`` on failure; it is built without touching any device, so the parent
+process can import it to parametrize.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+import traceback
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import AxisType, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+import geomjax as g
+
+NUM_DEVICES = 4
+NUM_DESIGNS = 8
+TOLERANCE = {"float32": 2e-5, "float64": 1e-11}
+CASES = {}
+
+
+def case(name):
+    def register(fn):
+        CASES[name] = fn
+        return fn
+
+    return register
+
+
+@functools.cache
+def mesh(axis_type: str):
+    return jax.make_mesh((NUM_DEVICES,), ("d",), axis_types=(getattr(AxisType, axis_type),))
+
+
+def shard(x, axis_type: str, axis: int):
+    spec = P(*([None] * axis), "d")
+    return jax.device_put(x, NamedSharding(mesh(axis_type), spec))
+
+
+def close(actual, expected, dtype):
+    actual, expected = jax.tree.leaves(actual), jax.tree.leaves(expected)
+    for a, e in zip(actual, expected, strict=True):
+        a, e = np.asarray(a, np.float64), np.asarray(e, np.float64)
+        tol = TOLERANCE[dtype]
+        scale = max(1.0, float(np.nanmax(np.abs(e)))) if e.size else 1.0
+        np.testing.assert_allclose(a, e, rtol=tol, atol=tol * scale)
+
+
+def sharded_axis(x, axis: int) -> bool:
+    """Whether ``x`` is split over the 4 devices along ``axis``."""
+    spec = tuple(x.sharding.spec) + (None,) * x.ndim
+    return spec[axis] == "d"
+
+
+def check(fn, inputs, sharded_inputs, dtype, *, keep_axis: int | None):
+    """``jit(fn)`` on sharded inputs equals it on unsharded ones; ``keep_axis`` stays split."""
+    expected = jax.jit(fn)(*inputs)
+    actual = jax.jit(fn)(*sharded_inputs)
+    close(actual, expected, dtype)
+    if keep_axis is not None:
+        for leaf in jax.tree.leaves(actual):
+            assert sharded_axis(leaf, keep_axis), f"output sharding {leaf.sharding} does not split axis {keep_axis}"
+
+
+def rng_array(seed, shape, dtype, scale=1.0):
+    return jnp.asarray(np.random.default_rng(seed).uniform(-scale, scale, shape), dtype)
+
+
+def design_batch(dtype, num_points=48, num_controls=6):
+    points = rng_array(0, (NUM_DESIGNS, num_points, 3), dtype)
+    controls = rng_array(1, (NUM_DESIGNS, num_controls, 3), dtype)
+    displacements = rng_array(2, (NUM_DESIGNS, num_controls, 3), dtype, 0.1)
+    return points, controls, displacements
+
+
+def lattices(dtype):
+    return rng_array(3, (NUM_DESIGNS, 3, 3, 3, 3), dtype, 0.1)
+
+
+def ffd(points, lattice, impl):
+    return g.free_form_deform_points(points, lattice, origin=[-1.0] * 3, extent=[2.0] * 3, implementation=impl)
+
+
+def morph(points, controls, displacements, impl, radius=0.8):
+    return g.morph_points(points, controls, displacements, radius=radius, implementation=impl)
+
+
+def rbf(points, controls, displacements, impl):
+    return g.radial_basis_function_deform_points(points, controls, displacements, implementation=impl)
+
+
+# Which axis of the output is expected to stay split: always under Explicit axes (the ops run
+# per shard); under Auto axes only for the JAX paths, since XLA's partitioner gathers the inputs
+# of Warp's FFI calls (see the op docstrings), so there only values are checked.
+def kept(axis_type, impl, axis=0):
+    return axis if axis_type == "Explicit" or impl == "jax" else None
+
+
+def design_morph(axis_type, impl, dtype):
+    points, controls, displacements = design_batch(dtype)
+    radius = jnp.full(controls.shape[:2], 0.8, dtype)  # per-design radii: a batched companion too
+    args = (points, controls, displacements, radius)
+    fn = functools.partial(lambda p, c, d, r, impl: morph(p, c, d, impl, radius=r), impl=impl)
+    check(fn, args, [shard(a, axis_type, 0) for a in args], dtype, keep_axis=kept(axis_type, impl))
+
+
+def design_rbf(axis_type, impl, dtype):
+    args = design_batch(dtype)
+    fn = functools.partial(rbf, impl=impl)
+    check(fn, args, [shard(a, axis_type, 0) for a in args], dtype, keep_axis=kept(axis_type, impl))
+
+
+def design_ffd(axis_type, impl, dtype):
+    args = (design_batch(dtype)[0], lattices(dtype))
+    fn = functools.partial(ffd, impl=impl)
+    check(fn, args, [shard(a, axis_type, 0) for a in args], dtype, keep_axis=kept(axis_type, impl))
+
+
+def query_morph(axis_type, impl, dtype):
+    points = rng_array(4, (1024, 3), dtype)
+    _, controls, displacements = design_batch(dtype, num_controls=12)
+    fn = functools.partial(morph, controls=controls[0], displacements=displacements[0], impl=impl)
+    check(fn, (points,), (shard(points, axis_type, 0),), dtype, keep_axis=kept(axis_type, impl))
+
+
+def query_rbf(axis_type, impl, dtype):
+    points = rng_array(4, (1024, 3), dtype)
+    _, controls, displacements = design_batch(dtype)
+    fn = functools.partial(rbf, controls=controls[0], displacements=displacements[0], impl=impl)
+    check(fn, (points,), (shard(points, axis_type, 0),), dtype, keep_axis=kept(axis_type, impl))
+
+
+def query_ffd(axis_type, impl, dtype):
+    points = rng_array(4, (1024, 3), dtype, 1.2)
+    fn = functools.partial(ffd, lattice=lattices(dtype)[0], impl=impl)
+    check(fn, (points,), (shard(points, axis_type, 0),), dtype, keep_axis=kept(axis_type, impl))
+
+
+def query_sdf(axis_type, impl, dtype):
+    sphere = g.icosphere(1, dtype=dtype)
+    # A (4, 64, 3) array of queries split along its first axis (any leading shape works).
+    points = rng_array(5, (4, 64, 3), dtype, 1.5)
+    # The JAX path compiles slowly (brute force and exact winding numbers): winding signs only,
+    # which also covers the host callback that repairs face orientations.
+    for winding in (True,) if impl == "jax" else (False, True):
+
+        def fn(p, winding=winding):
+            return g.signed_distance_field(sphere.points, sphere.cells, p, use_sign_winding_number=winding, implementation=impl)
+
+        check(fn, (points,), (shard(points, axis_type, 0),), dtype, keep_axis=kept(axis_type, impl))
+
+
+def design_grad(axis_type, impl):
+    dtype = "float64"
+    points, controls, displacements = design_batch(dtype)
+    lattice = lattices(dtype)
+
+    def objective(displacements, lattice):
+        moved = morph(points, controls, displacements, impl)
+        moved = rbf(moved, controls, displacements, impl)
+        return jnp.sum(jnp.square(ffd(moved, lattice, impl)))
+
+    fn = jax.grad(objective, argnums=(0, 1))
+    args = (displacements, lattice)
+    check(fn, args, [shard(a, axis_type, 0) for a in args], dtype, keep_axis=kept(axis_type, impl))
+
+
+def query_grad(axis_type, impl):
+    # Split queries with replicated controls and mesh: the gradients of the replicated inputs
+    # are partial sums on each device that must be added up.
+    dtype = "float64"
+    points = rng_array(4, (512, 3), dtype)
+    _, controls, displacements = design_batch(dtype, num_controls=12)
+    sphere = g.icosphere(1, dtype=dtype)
+
+    def objective(points, controls, displacements, vertices):
+        moved = rbf(points, controls, displacements, impl)
+        if impl == "jax":  # compile time: the JAX morph and SDF are covered elsewhere
+            return jnp.sum(jnp.square(moved))
+        moved = morph(moved, controls, displacements, impl)
+        sdf = g.signed_distance_field(vertices, sphere.cells, moved, implementation=impl)[0]
+        return jnp.sum(jnp.square(sdf))
+
+    fn = jax.grad(objective, argnums=(0, 1, 2, 3))
+    args = (points, controls[0], displacements[0], sphere.points)
+    sharded = (shard(points, axis_type, 0), *args[1:])
+    check(fn, args, sharded, dtype, keep_axis=None)
+    if kept(axis_type, impl) is not None:
+        grads = jax.jit(fn)(*sharded)
+        assert sharded_axis(grads[0], 0), f"point gradient sharding {grads[0].sharding}"
+
+
+def design_energies(axis_type, impl):
+    dtype = "float64"
+    sphere = g.icosphere(1, dtype=dtype)
+    box = g.tetrahedralized_box(2, 2, 2, dtype=dtype)
+    surface = sphere.points + rng_array(6, (NUM_DESIGNS, *sphere.points.shape), dtype, 0.05)
+    solid = box.points + rng_array(7, (NUM_DESIGNS, *box.points.shape), dtype, 0.05)
+    # vmap over an explicitly split axis does not reach Warp's FFI calls (their sequential
+    # batching is a scan, which JAX refuses over a split axis); the batched form does.
+    vmapped = not (axis_type == "Explicit" and impl == "warp")
+
+    def energies(surface, solid):
+        rest_surface = jnp.broadcast_to(sphere.points, surface.shape)
+        rest_solid = jnp.broadcast_to(box.points, solid.shape)
+        terms = [g.closed_surface_volume_energy(surface, rest_surface, sphere.cells, target_ratio=1.1, reduction="none", implementation=impl)]
+        if impl == "warp":
+            # Each Warp energy has its own per-shard call; the JAX energies are plain XLA code,
+            # slow to compile here, so the volume stands for them.
+            terms.append(g.simplex_strain_energy(solid, rest_solid, box.cells, reduction="none", implementation=impl).sum(-1))
+            terms.append(g.surface_bending_energy(surface, rest_surface, sphere.hinges, reduction="none", implementation=impl).sum(-1))
+            terms.append(g.simplex_measure_energy(surface, rest_surface, sphere.cells, reduction="none", implementation=impl).sum(-1))
+            terms.append(g.simplex_inversion_energy(solid, rest_solid, box.cells, reduction="none", implementation=impl).sum(-1))
+        if vmapped:
+
+            def one(s, x):
+                volume = g.closed_surface_volume_energy(s, sphere.points, sphere.cells, target_ratio=1.1, implementation=impl)
+                return volume + g.total_measure_energy(x, box.points, box.cells, implementation=impl)
+
+            terms.append(jax.vmap(one)(surface, solid))
+        return jnp.stack(terms, axis=-1)
+
+    args = (surface, solid)
+    sharded = [shard(a, axis_type, 0) for a in args]
+    check(energies, args, sharded, dtype, keep_axis=kept(axis_type, impl))
+    total = jax.grad(lambda s, x: jnp.sum(energies(s, x)), argnums=(0, 1))
+    check(total, args, sharded, dtype, keep_axis=kept(axis_type, impl))
+
+
+# Compilation dominates the run time: float32 (a separate Warp kernel variant) runs for the Warp
+# paths under Explicit axes, and Auto axes (where the ops run unchanged) only get float64.
+VALUE_CONFIGS = [
+    ("Explicit", "jax", "float64"),
+    ("Explicit", "warp", "float32"),
+    ("Explicit", "warp", "float64"),
+    ("Auto", "jax", "float64"),
+    ("Auto", "warp", "float64"),
+]
+VALUE_CASES = (design_morph, design_rbf, design_ffd, query_morph, query_rbf, query_ffd, query_sdf)
+GRADIENT_CONFIGS = [
+    ("Explicit", "jax", (design_grad, query_grad, design_energies)),
+    ("Explicit", "warp", (design_grad, query_grad, design_energies)),
+    ("Auto", "warp", (design_grad, design_energies)),
+]
+
+for _axis_type, _impl, _dtype in VALUE_CONFIGS:
+    if _axis_type == "Auto" and _impl == "jax":
+        # Under Auto axes the JAX SDF is ordinary XLA partitioning of slow-to-compile code.
+        _cases = [c for c in VALUE_CASES if c is not query_sdf]
+    else:
+        _cases = VALUE_CASES
+    for _fn in _cases:
+        case(f"{_fn.__name__.replace('_', '-')}-{_axis_type}-{_impl}-{_dtype}")(functools.partial(_fn, _axis_type, _impl, _dtype))
+for _axis_type, _impl, _fns in GRADIENT_CONFIGS:
+    for _fn in _fns:
+        case(f"{_fn.__name__.replace('_', '-')}-{_axis_type}-{_impl}")(functools.partial(_fn, _axis_type, _impl))
+
+
+@case("design-displace-Explicit")
+def _():
+    points = design_batch("float64")[0]
+    displacement = rng_array(8, points.shape, "float64", 0.1)
+    weights = jnp.asarray(np.random.default_rng(9).uniform(size=points.shape[:2]) > 0.5)
+    args = (points, displacement, weights)
+    check(
+        lambda p, d, w: g.displace_points(p, d, point_weights=w),
+        args,
+        [shard(a, "Explicit", 0) for a in args],
+        "float64",
+        keep_axis=0,
+    )
+
+
+@case("design-sobolev-Explicit-warp")
+def _():
+    # Values only (its gradient compiles slowly; checked by hand when this was written).
+    sphere = g.icosphere(1, dtype="float64")
+    points = jnp.broadcast_to(sphere.points, (NUM_DESIGNS, *sphere.points.shape))
+    displacement = rng_array(10, points.shape, "float64", 0.01)
+
+    def deform(p, d):
+        return g.sobolev_deform_points(p, sphere.cells, d, length_scale=0.3, implementation="warp")
+
+    args = (points, displacement)
+    check(deform, args, [shard(a, "Explicit", 0) for a in args], "float64", keep_axis=0)
+
+
+@case("design-and-query-morph-Explicit")
+def _():
+    # A 2 x 2 mesh splitting designs and points at once; the controls (split over designs only)
+    # get per-device partial gradients that are summed over the point axis.
+    grid = jax.make_mesh((2, 2), ("designs", "points"))
+    points, controls, displacements = design_batch("float64")
+    split_points = jax.device_put(points, NamedSharding(grid, P("designs", "points")))
+    split_controls = [jax.device_put(a, NamedSharding(grid, P("designs"))) for a in (controls, displacements)]
+    for impl in ("jax", "warp"):
+
+        def objective(p, c, d, impl=impl):
+            return jnp.sum(jnp.square(morph(p, c, d, impl)))
+
+        fn = jax.value_and_grad(objective, argnums=(0, 1, 2))
+        expected = jax.jit(fn)(points, controls, displacements)
+        actual = jax.jit(fn)(split_points, *split_controls)
+        close(actual, expected, "float64")
+        spec = tuple(actual[1][0].sharding.spec)
+        assert spec[:2] == ("designs", "points"), f"point gradient sharding {spec}"
+
+
+@case("query-eager-Explicit")
+def _():
+    # Outside jit, on concrete sharded arrays (shard_map on a concrete mesh).
+    points = rng_array(4, (256, 3), "float64")
+    _, controls, displacements = design_batch("float64")
+    sharded = shard(points, "Explicit", 0)
+    for impl in ("jax", "warp"):
+        out = morph(sharded, controls[0], displacements[0], impl)
+        close(out, morph(points, controls[0], displacements[0], impl), "float64")
+        assert sharded_axis(out, 0), f"eager output sharding {out.sharding}"
+
+
+@case("query-replicated-Explicit")
+def _():
+    # Replicated inputs on an Explicit mesh: nothing to split, the ops run as without a mesh.
+    points = rng_array(4, (1024, 3), "float64")
+    _, controls, displacements = design_batch("float64")
+    replicated = jax.device_put(points, NamedSharding(mesh("Explicit"), P()))
+    fn = functools.partial(morph, controls=controls[0], displacements=displacements[0], impl="warp")
+    check(fn, (points,), (replicated,), "float64", keep_axis=None)
+
+
+def main(path: str) -> None:
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_numpy_dtype_promotion", "strict")
+    assert jax.device_count() == NUM_DEVICES, f"expected {NUM_DEVICES} host devices, got {jax.devices()}"
+    results = {}
+    for name, fn in CASES.items():
+        try:
+            fn()
+            results[name] = {"ok": True}
+        except Exception:  # noqa: BLE001 - every failure is reported as that case's result
+            results[name] = {"ok": False, "error": traceback.format_exc(limit=6)}
+    with open(path, "w") as f:
+        json.dump(results, f)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])
