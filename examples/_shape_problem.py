@@ -122,6 +122,16 @@ def enclosed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
     return float(np.einsum("fi,fi->", a, np.cross(b, c)) / 6.0)
 
 
+def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit vertex normals: the area-weighted sum of the adjacent triangles' normals."""
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    face_normals = np.cross(b - a, c - a)
+    normals = np.zeros_like(points)
+    for k in range(3):
+        np.add.at(normals, triangles[:, k], face_normals)
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
 def surface_area(points: np.ndarray, triangles: np.ndarray) -> float:
     a, b, c = (points[triangles[:, k]].astype(np.float64) for k in range(3))
     return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())

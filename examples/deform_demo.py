@@ -20,6 +20,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _shape_problem import vertex_normals
 
 import geomjax
 
@@ -57,15 +58,6 @@ def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
 def enclosed_volume(points: jax.Array, faces: np.ndarray) -> jax.Array:
     a, b, c = (points[faces[:, k]] for k in range(3))
     return jnp.sum(jnp.einsum("fi,fi->f", a, jnp.cross(b, c))) / 6.0
-
-
-def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    a, b, c = (points[faces[:, k]] for k in range(3))
-    face_normals = np.cross(b - a, c - a)
-    normals = np.zeros_like(points)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_normals)
-    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
 def timed(label: str, fn):

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from _render import figure_of_surfaces, loss_curves
-from _shape_problem import peanut
+from _shape_problem import peanut, vertex_normals
 from tqdm import tqdm
 
 import geomjax
@@ -120,15 +120,6 @@ def main() -> None:
     loss_curves(args.output_dir / "sobolev_smoothing_loss.png", history, title="raw vs Sobolev-smoothed descent",
                 xlabel="step")
     print(f"loss: initial {history['loss']['Sobolev gradient'][0]:.6e} final {history['loss']['Sobolev gradient'][-1]:.6e}")
-
-
-def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    a, b, c = (points[triangles[:, k]] for k in range(3))
-    face_normals = np.cross(b - a, c - a)
-    normals = np.zeros_like(points)
-    for k in range(3):
-        np.add.at(normals, triangles[:, k], face_normals)
-    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
 def count_inverted(points: np.ndarray, triangles: np.ndarray) -> int:
