@@ -461,7 +461,10 @@ def _tps_kernel(squared):
     gradient.
     """
     safe = jnp.where(squared > 0, squared, jnp.ones((), squared.dtype))
-    return 0.5 * squared * _log(safe)
+    # The factor 0.5 goes on the log, not on ``squared``: XLA:CPU fuses ``s * (0.5 * log s)``
+    # into one loop but splits ``(0.5 * s) * log s`` around the float64 log's word split, which
+    # made the whole pairwise evaluation 2.5x slower (measured).
+    return squared * (0.5 * _log(safe))
 
 
 @jax.custom_jvp
@@ -483,11 +486,22 @@ def _split_ln2():
 
 
 _LN2_HIGH, _LN2_LOW = _split_ln2()  # k * _LN2_HIGH is exact for every float64 exponent k
-_SQRT_HALF_BITS = int(np.float64(np.sqrt(0.5)).view(np.int64))
-_MANTISSA_MASK = (1 << 52) - 1
-# log(m) = 2 atanh(z), z = (m - 1) / (m + 1): series coefficients 2 / (2j + 1) in w = z^2.
-# For m in [sqrt(1/2), sqrt(2)), |z| <= 0.1716 and ten terms leave a truncation below 1e-17.
-_ATANH_TERMS = tuple(2.0 / (2 * j + 1) for j in range(1, 11))
+# The high 32-bit word of sqrt(1/2) (sign, 11 exponent bits, top 20 mantissa bits).
+_SQRT_HALF_HIGH_WORD = int(np.float64(np.sqrt(0.5)).view(np.int64)) >> 32
+_HIGH_MANTISSA_MASK = (1 << 20) - 1
+# log(m) = 2 atanh(z) = 2z + z w P(w), z = (m - 1) / (m + 1), w = z^2. For m in
+# [sqrt(1/2), sqrt(2)), w <= (3 - 2 sqrt 2)^2 = 0.02944. P is the degree-6 Chebyshev fit of
+# (2 atanh(z) - 2z) / (z w) on that interval (fitted in 50-digit arithmetic; max error 3.1e-16
+# of P, i.e. below 5e-18 relative to log m). The Taylor series would need ten terms.
+_ATANH_REMAINDER = (
+    0.14616449685043406,
+    0.15331721600556042,
+    0.18182889125261723,
+    0.2222221113479508,
+    0.28571428625975487,
+    0.39999999999899505,
+    0.666666666666667,
+)
 
 
 def _log64(x):
@@ -496,16 +510,24 @@ def _log64(x):
     XLA's CPU ``log`` is several times slower than arithmetic when its result is materialised
     for a matrix product, and it dominates the pairwise evaluation; this version uses only
     integer and floating arithmetic (one division) and vectorises. Split ``x = 2^k m`` with
-    ``m`` in ``[sqrt(1/2), sqrt(2))`` from the bit pattern, then ``log x = k ln 2 + 2 atanh z``.
+    ``m`` in ``[sqrt(1/2), sqrt(2))``, then ``log x = k ln 2 + 2 atanh z``.
+
+    The split works on the high 32-bit word only (exponent and top mantissa bits): 32-bit
+    integer lanes are twice as wide as 64-bit ones on CPUs without AVX2 integer vectors, and
+    the low word passes through unchanged (measured 20% faster than 64-bit integer arithmetic
+    for the whole pairwise RBF evaluation). The word order of the split is little-endian, as on
+    every platform JAX runs on; the powers-of-two cases of the accuracy test would catch others.
     """
-    bits = jax.lax.bitcast_convert_type(x, jnp.int64) - _SQRT_HALF_BITS
-    exponent = jax.lax.shift_right_arithmetic(bits, jnp.int64(52))
-    mantissa = jax.lax.bitcast_convert_type((bits & _MANTISSA_MASK) + _SQRT_HALF_BITS, jnp.float64)
+    words = jax.lax.bitcast_convert_type(x, jnp.int32)  # (..., 2): [low, high]
+    high = words[..., 1] - jnp.int32(_SQRT_HALF_HIGH_WORD)
+    exponent = jax.lax.shift_right_arithmetic(high, jnp.int32(20))
+    mantissa_high = (high & jnp.int32(_HIGH_MANTISSA_MASK)) + jnp.int32(_SQRT_HALF_HIGH_WORD)
+    mantissa = jax.lax.bitcast_convert_type(jnp.stack([words[..., 0], mantissa_high], axis=-1), jnp.float64)
     f = mantissa - 1.0
     z = f / (f + 2.0)
     w = z * z
-    series = jnp.full_like(w, _ATANH_TERMS[-1])
-    for coefficient in reversed(_ATANH_TERMS[:-1]):
-        series = series * w + coefficient
+    remainder = jnp.full_like(w, _ATANH_REMAINDER[0])
+    for coefficient in _ATANH_REMAINDER[1:]:
+        remainder = remainder * w + coefficient
     k = exponent.astype(jnp.float64)
-    return k * _LN2_HIGH + (2.0 * z + (z * w * series + k * _LN2_LOW))
+    return k * _LN2_HIGH + (2.0 * z + (z * w * remainder + k * _LN2_LOW))

@@ -392,8 +392,18 @@ def test_blocked_evaluation_equals_a_single_block(monkeypatch):
 
 def test_float64_log_is_accurate():
     rng = np.random.default_rng(68)
+    powers = 2.0 ** np.arange(-1000, 1001)
+    # Binade and range-reduction edges: 2^k, sqrt(1/2) 2^k and the doubles just below them.
+    edges = np.concatenate([powers, np.nextafter(powers, 0), np.sqrt(0.5) * powers, np.nextafter(np.sqrt(0.5) * powers, 0)])
     x = np.concatenate(
-        [rng.uniform(1e-300, 10.0, 5000), np.exp(rng.uniform(-700.0, 700.0, 5000)), rng.uniform(0.5, 2.0, 5000), [1.0, 2.0, 0.5]]
+        [
+            rng.uniform(1e-300, 10.0, 5000),
+            np.exp(rng.uniform(-700.0, 700.0, 5000)),
+            rng.uniform(0.5, 2.0, 5000),
+            edges,
+            [np.finfo(np.float64).max, np.finfo(np.float64).tiny],
+            [1.0, 2.0, 0.5],
+        ]
     )
     got = np.asarray(jax.jit(rbf_module._log64)(jnp.asarray(x)))
     expected = np.log(x)
