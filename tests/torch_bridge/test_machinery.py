@@ -189,6 +189,27 @@ def test_cpu_views_are_reused_and_follow_the_tensor():
     assert len(views._views) == before
 
 
+def test_small_tensors_get_a_kept_view_on_their_second_call_only():
+    """A tensor made anew for every call goes through NumPy (no view, no weak reference); one
+    that comes back gets a kept view; large tensors are kept from the first call."""
+    views = _bridge._cpu_views
+    p, d = _points(torch.float32, (16, 3)), _points(torch.float32, (16, 3), seed=1)
+    once = torch_bridge.displace_points(p, d)
+    assert id(p) not in views._views and id(d) not in views._views
+    torch.testing.assert_close(once, p + d, rtol=0, atol=0)
+    with torch.no_grad():
+        p.add_(1.0)  # in place between the NumPy call and the kept view: both see the memory
+    torch.testing.assert_close(torch_bridge.displace_points(p, d), p + d, rtol=0, atol=0)
+    assert id(p) in views._views and id(d) in views._views
+    large = _points(torch.float32, (_bridge.SMALL_CPU_BYTES // 12 + 1, 3))
+    _bridge.to_jax(large, jit_argument=True)
+    assert id(large) in views._views
+    half = torch.full((4, 3), 1.5, dtype=torch.bfloat16)  # no NumPy dtype: DLPack from the first call
+    array = _bridge.to_jax(half, jit_argument=True)
+    assert isinstance(array, jax.Array) and array.dtype == jnp.bfloat16
+    np.testing.assert_array_equal(np.asarray(array, np.float32), np.full((4, 3), 1.5, np.float32))
+
+
 def test_empty_arrays_convert():
     out = _bridge.to_torch(jnp.zeros((0, 3), jnp.float32), torch.device("cpu"))
     assert out.shape == (0, 3) and out.dtype == torch.float32
