@@ -75,8 +75,11 @@ class MeshBVH(eqx.Module):
     * ``faces`` ``(F, 3)`` int32: the triangles, in the order of the BVH's face ids;
     * ``mesh_words`` ``(2,)`` uint32: the Warp mesh id, and the owner of the Warp mesh (a
       zero-copy view of a Warp array that references it). The mesh lives as long as this buffer,
-      including while a dispatched computation still reads it;
-    * ``winding_number`` (static): whether the BVH supports winding-number queries.
+      including while a dispatched computation still reads it; ray casts use it;
+    * ``winding_number`` (static): whether the BVH supports winding-number queries;
+    * ``closest_tree``: a tuple of arrays, the oriented-box tree that closest-point searches use
+      (tighter than Warp's axis-aligned boxes around curved surfaces; see ``warp_ffi._obb_tree``),
+      or ``None`` when the MeshBVH only serves ray casts.
 
     A MeshBVH can be passed to a jitted function as an argument (no retrace for a new mesh of
     the same size: the mesh id is data) or closed over.
@@ -99,6 +102,7 @@ class MeshBVH(eqx.Module):
     mesh_words: UInt32[Array, "2"]
     winding_number: bool = eqx.field(static=True)
     _mesh: _WarpMeshRef = eqx.field(static=True)
+    closest_tree: tuple | None = None
 
     @property
     def warp_mesh(self):
@@ -128,7 +132,8 @@ class MeshBVH(eqx.Module):
         from warp_ffi.bvh import refit_mesh
 
         refit_mesh(self._mesh(), host)
-        return MeshBVH(vertices, self.faces, self.mesh_words, self.winding_number, self._mesh)
+        tree = _closest_tree(host, self.faces, vertices)
+        return MeshBVH(vertices, self.faces, self.mesh_words, self.winding_number, self._mesh, tree)
 
 
 def build_bvh(
@@ -188,7 +193,17 @@ def build_bvh(
     device = warp.device_from_jax(next(iter(vertices.devices())))
     mesh = build_mesh(host_vertices, host_faces.reshape(-1), winding_number=winding_number, device=device)
     words = mesh_handle(mesh)
-    return MeshBVH(vertices, faces, words, winding_number, _WarpMeshRef(mesh))
+    return MeshBVH(vertices, faces, words, winding_number, _WarpMeshRef(mesh), _closest_tree(host_vertices, faces, vertices))
+
+
+def _closest_tree(host_vertices: np.ndarray, faces: jax.Array, vertices: jax.Array) -> tuple:
+    """The oriented-box tree of the (float32) vertices and the input faces, on the vertices' device."""
+    import warp
+
+    from warp_ffi.bvh import closest_tree
+
+    device = warp.device_from_jax(next(iter(vertices.devices())))
+    return closest_tree(host_vertices, np.asarray(faces).reshape(-1), device)
 
 
 def closest_faces(
@@ -201,10 +216,10 @@ def closest_faces(
     The answer is the face at minimum distance among all faces (degenerate ones included),
     ties going to the lowest face index, exactly as a brute-force search in the dtype of
     ``bvh.vertices`` (:func:`closest_faces_brute_force`) would give it, for float32 and
-    float64: Warp's float32 query gives a first face, every face within that distance (plus a
-    ``2**-16`` relative pad that covers float32 rounding) is enumerated with an exact sphere
-    query and measured again in the vertices' dtype, with :func:`closest_point_on_triangle`'s
-    rule. Measurements are made by a Warp kernel, so a near-tie (distances equal to rounding)
+    float64: a float32 search of the BVH's oriented-box tree gives a first face, every face
+    within that distance (plus a ``2**-16`` relative pad that covers float32 rounding) is
+    enumerated with conservative box bounds and measured again in the vertices' dtype, with
+    :func:`closest_point_on_triangle`'s rule. Measurements are made by a Warp kernel, so a near-tie (distances equal to rounding)
     may resolve differently from the JAX brute force.
 
     Args:
@@ -217,9 +232,8 @@ def closest_faces(
     Returns:
         ``(...)`` int32 face ids.
 
-    Works under ``jit`` and ``vmap`` (queries run sequentially per batch element). The only
-    known miss: Warp's first query skips sliver faces (``|AB x AC| < 1e-6 * sum |edge|^2``), so
-    a point whose faces within ``max_distance`` are all slivers gets ``-1``.
+    Works under ``jit`` and ``vmap`` (queries run sequentially per batch element). Degenerate
+    (sliver) faces are searched like any other.
 
     Raises:
         TypeError: ``bvh`` is not a MeshBVH, non-float ``points`` or a dtype other than the
@@ -246,8 +260,10 @@ def closest_faces(
     from warp_ffi.bvh import point_faces
 
     vertices = jax.lax.stop_gradient(bvh.vertices)
+    # A MeshBVH made for ray casts only carries no tree: build one in the call.
+    mesh = bvh.closest_tree if bvh.closest_tree is not None else (bvh_vertices32(vertices), bvh.faces.reshape(-1))
     faces, _ = point_faces(
-        bvh.mesh_words, flat, vertices, bvh.faces, jnp.asarray(limit, flat.dtype), _extent(vertices),
+        mesh, flat, vertices, bvh.faces, jnp.asarray(limit, flat.dtype), _extent(vertices),
         sign_mode="none", exact=True,
     )  # fmt: skip
     return faces.reshape(shape)

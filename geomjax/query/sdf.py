@@ -64,9 +64,10 @@ def signed_distance_field(
         max_dist: positive finite real: points with no face strictly closer get NaN.
         use_sign_winding_number: bool, see above.
         implementation: ``"warp"``, ``"jax"`` (also ``"torch"``) or ``None``. ``None`` picks
-            Warp on every platform (when warp-lang is installed): a BVH (built inside the call,
-            so the call traces under ``jit`` even with traced mesh arrays) with Warp's signed
-            closest-point queries (winding numbers: Barnes-Hut, accuracy 2.0). ``"jax"``
+            Warp on every platform (when warp-lang is installed): search structures built inside
+            the call (so it traces under ``jit`` even with traced mesh arrays), an oriented-box
+            tree for the closest face and the normal sign, Warp's ``wp.Mesh`` winding-number
+            query for winding signs (Barnes-Hut, accuracy 2.0). ``"jax"``
             measures every point against every face and sums exact winding numbers (a reference
             for small meshes).
 
@@ -81,7 +82,7 @@ def signed_distance_field(
     on the surface the distance is not differentiable and the gradient is zero. Supports
     ``jit``, ``vmap`` and reverse and forward mode.
 
-    Float64: the Warp BVH is float32; the nearest face is then refined exactly in float64 (every
+    Float64: the Warp search is float32; the nearest face is then refined exactly in float64 (every
     face within the float32 answer's distance is measured again in float64), while the sign of
     points within float32 rounding of the surface (where the distance is ~0) comes from float32.
 

@@ -57,6 +57,47 @@ def _unique_nearest(points, vertices, faces, margin):
     return d[:, 1] - d[:, 0] > margin
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_oriented_box_tree_search_is_exact_on_a_finely_tessellated_sphere(dtype):
+    # 5,120 faces (a 12-level tree): queries near the centre (every face about equally far),
+    # near the surface, far outside, and gated by max_distance.
+    vertices, faces = _sphere(dtype, 4)
+    bvh = build_bvh(vertices, faces)
+    rng = np.random.default_rng(4)
+    directions = rng.normal(size=(600, 3))
+    radii = np.concatenate([rng.uniform(0.0, 0.2, 150), rng.uniform(0.95, 1.05, 300), rng.uniform(1.5, 4.0, 150)])
+    points = jnp.asarray(directions / np.linalg.norm(directions, axis=1, keepdims=True) * radii[:, None], dtype)
+    tol = 1e-6 if dtype == jnp.float32 else 1e-14
+    for max_distance in (None, 0.5):
+        ids = closest_faces(bvh, points, max_distance)
+        expected, d2 = closest_faces_brute_force(points, vertices, faces, max_distance)
+        np.testing.assert_array_equal(np.asarray(ids) >= 0, np.asarray(expected) >= 0)
+        found = np.asarray(expected) >= 0
+        d_tree = _distances(points, vertices, faces, ids)[found]
+        np.testing.assert_allclose(d_tree, np.sqrt(np.asarray(d2, np.float64))[found], rtol=tol, atol=tol)
+    unique = _unique_nearest(points, vertices, faces, margin=1e-5)
+    np.testing.assert_array_equal(np.asarray(ids)[unique], np.asarray(expected)[unique])
+
+
+@pytest.mark.parametrize("num_faces", [1, 2, 3, 5, 7, 9, 13, 33])
+def test_tree_leaves_cover_every_face_count(num_faces):
+    # The tree's leaves tile the sorted faces in 1-2 face ranges; odd counts leave uneven ones.
+    rng = np.random.default_rng(num_faces)
+    vertices = jnp.asarray(rng.uniform(-1, 1, (3 * num_faces, 3)))
+    faces = jnp.arange(3 * num_faces, dtype=jnp.int32).reshape(-1, 3)
+    points = jnp.asarray(rng.uniform(-2, 2, (300, 3)))
+    ids = closest_faces(build_bvh(vertices, faces), points)
+    np.testing.assert_array_equal(ids, closest_faces_brute_force(points, vertices, faces)[0])
+
+
+def test_sliver_faces_are_searched():
+    # The segment-like face is the only one within max_distance: it must be found.
+    vertices = jnp.asarray([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5.0, 5, 5], [5.5, 5.5, 5.5], [6.0, 6, 6]])
+    faces = jnp.array([[0, 1, 2], [3, 4, 5]], jnp.int32)
+    points = jnp.asarray([[5.5, 5.5, 5.6], [0.2, 0.2, 0.1]])
+    np.testing.assert_array_equal(closest_faces(build_bvh(vertices, faces), points, max_distance=1.0), [1, 0])
+
+
 def test_float64_search_is_exact_where_float32_cannot_tell():
     # Two parallel triangles 1 and 1 + 1e-12 below the query: only float64 separates them. The
     # nearer one has the higher index, so a float32 tie-break would pick the wrong one.

@@ -1,0 +1,324 @@
+"""An oriented-box tree over a triangle mesh, for closest-point searches (CPU and CUDA).
+
+Why not Warp's own ``wp.Mesh`` BVH for these: its axis-aligned boxes are loose around a tilted
+surface patch, by about the patch's size along the surface normal. A query at distance ``d``
+from a curved surface must then open every leaf whose box reaches into its distance ball, which
+is hundreds of triangles for a point away from a finely tessellated sphere. Here a node is a box
+in the frame of its patch's mean normal (when the patch is flat enough, else axis-aligned,
+whichever box is smaller), so a leaf is about as thin as its triangles are and only the leaves
+around the closest point are opened: 15-30 triangle tests instead of ~400 on the benchmark
+icosphere, and about 3x faster searches.
+
+Layout. Faces are sorted along the Morton curve of their centroids. Node ``n >= 1`` of the
+implicit complete binary tree (children ``2 n`` and ``2 n + 1``) at level ``l = floor(log2 n)``
+covers the sorted faces ``[(n - 2^l) F >> l, (n - 2^l + 1) F >> l)``, so the tree needs no
+pointers and the ranges of one level tile the faces. Leaves are the ``2^k`` nodes of level
+``k = floor(log2 F)`` and hold one or two faces each.
+
+Arrays (a :class:`Tree` struct in kernels, :data:`TREE_ARRAYS` order in JAX), ``L = 2^k``:
+
+* ``nodes`` ``(2 L,)`` mat44, one 64-byte cache line per node (node 0 unused): rows 0-2 are
+  the node's axes, each followed by the box centre's coordinate on that axis; row 3 holds the
+  half extents, widened by ``2**-16`` of the box's coordinate magnitude so float32 rounding
+  never excludes a face;
+* ``leaf_starts`` ``(L + 1,)`` int32: sorted-face range of each leaf;
+* ``faces`` ``(F,)`` int32: the original face id of each sorted face;
+* ``corners`` ``(3 F,)`` vec3: float32 corners of the sorted faces (contiguous for the search).
+
+The traversal is stackless (:func:`leaf_within`): the implicit layout gives the next node in
+depth-first order from the current one, so a search carries a single node index.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._kernels import launch_in_chunks
+from ._kernels import warp as wp
+
+__all__ = ["Tree", "TREE_ARRAYS", "build_tree", "leaf_within", "next_after", "node_distance_sq", "query_order", "tree_struct"]
+
+FLOAT32_MAX = wp.constant(3.4028234663852886e38)
+BOX_PAD = wp.constant(2.0**-16)  # relative widening of every node box (float32 rounding)
+FLAT_ENOUGH = wp.constant(0.5)  # |sum of area normals| / sum of areas above this: try a normal frame
+
+TREE_ARRAYS = ("nodes", "leaf_starts", "faces", "corners")
+
+
+@wp.struct
+class Tree:
+    nodes: wp.array(dtype=wp.mat44)
+    leaf_starts: wp.array(dtype=wp.int32)
+    faces: wp.array(dtype=wp.int32)
+    corners: wp.array(dtype=wp.vec3)
+    first_leaf: wp.int32
+
+
+def tree_struct(nodes, leaf_starts, faces, corners) -> Tree:
+    """The kernel argument for Warp arrays in :data:`TREE_ARRAYS` order."""
+    tree = Tree()
+    tree.nodes = nodes
+    tree.leaf_starts, tree.faces, tree.corners = leaf_starts, faces, corners
+    tree.first_leaf = leaf_starts.shape[0] - 1
+    return tree
+
+
+def tree_shapes(num_faces: int) -> dict:
+    """Array shapes of the tree of ``num_faces >= 1`` faces (Warp element types are vectors)."""
+    leaves = 1 << (int(num_faces).bit_length() - 1)
+    return {"nodes": (2 * leaves,), "leaf_starts": (leaves + 1,), "faces": (num_faces,), "corners": (3 * num_faces,)}
+
+
+# ---------------------------------------------------------------------------------------------
+# Traversal.
+
+
+@wp.func
+def node_distance_sq(tree: Tree, node: int, p: wp.vec3):
+    """Squared distance from ``p`` to the box of ``node`` (a lower bound for its faces)."""
+    box = tree.nodes[node]
+    dx = wp.max(wp.abs(box[0, 0] * p[0] + box[0, 1] * p[1] + box[0, 2] * p[2] - box[0, 3]) - box[3, 0], 0.0)
+    dy = wp.max(wp.abs(box[1, 0] * p[0] + box[1, 1] * p[1] + box[1, 2] * p[2] - box[1, 3]) - box[3, 1], 0.0)
+    dz = wp.max(wp.abs(box[2, 0] * p[0] + box[2, 1] * p[1] + box[2, 2] * p[2] - box[2, 3]) - box[3, 2], 0.0)
+    return dx * dx + dy * dy + dz * dz
+
+
+@wp.func
+def next_after(node: int):
+    """The node after ``node``'s subtree in depth-first order, 0 once the whole tree is done."""
+    n = node
+    while (n & 1) == 1:  # a right child: its parent's subtree is done too
+        n = n >> 1
+    if n == 0:
+        return 0
+    return n + 1
+
+
+@wp.func
+def leaf_within(tree: Tree, p: wp.vec3, radius_sq: float, node: int):
+    """First leaf at or after ``node`` (depth-first) whose box is within ``sqrt(radius_sq)`` of ``p``, else 0.
+
+    Enumerate with ``leaf = leaf_within(tree, p, r2, 1)`` then ``leaf_within(tree, p, r2,
+    next_after(leaf))``; ``radius_sq`` may shrink between calls (a nearest search).
+    """
+    n = node
+    while n != 0:
+        if node_distance_sq(tree, n, p) <= radius_sq:
+            if n >= tree.first_leaf:
+                return n
+            n = 2 * n
+        else:
+            n = next_after(n)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Morton order (of face centroids here, of query points in ``bvh``).
+
+
+@wp.func
+def _spread_bits(x: wp.int32):
+    """The 10 low bits of ``x`` moved to every third bit (for a 30-bit Morton code)."""
+    v = wp.uint32(x) & wp.uint32(0x3FF)
+    v = (v | (v << wp.uint32(16))) & wp.uint32(0x030000FF)
+    v = (v | (v << wp.uint32(8))) & wp.uint32(0x0300F00F)
+    v = (v | (v << wp.uint32(4))) & wp.uint32(0x030C30C3)
+    v = (v | (v << wp.uint32(2))) & wp.uint32(0x09249249)
+    return v
+
+
+@wp.func
+def _cell(x: float, low: float, scale: float):
+    return wp.int32(wp.clamp((x - low) * scale, 0.0, 1023.0))
+
+
+@wp.kernel
+def _morton_kernel(
+    points: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.float32),
+    offset: wp.int32,
+    keys_out: wp.array(dtype=wp.int32),
+    order_out: wp.array(dtype=wp.int32),
+):
+    """Morton code of each point on a 1024^3 grid over ``box`` = (low corner, 1023 / size) (non-finite: 0)."""
+    _, t = wp.tid()
+    i = t + offset
+    p = points[i]
+    code = wp.uint32(0)
+    if wp.isfinite(p):
+        code = _spread_bits(_cell(p[0], box[0], box[3]))
+        code = code | (_spread_bits(_cell(p[1], box[1], box[3])) << wp.uint32(1))
+        code = code | (_spread_bits(_cell(p[2], box[2], box[3])) << wp.uint32(2))
+    keys_out[i] = wp.int32(code)
+    order_out[i] = i
+
+
+def query_order(points32, box, keys, order) -> None:
+    """Fill ``order`` with a permutation of the points that visits them in Morton order on CPU.
+
+    Neighbouring queries then walk the same tree nodes while they are in cache (1.5-3x faster on
+    CPU for a million points) and the search's warm start is close. On CUDA the order is the
+    identity. ``keys``/``order`` are scratch of length ``2 N`` (Warp's radix sort needs it).
+    """
+    num = points32.shape[0]
+    launch_in_chunks(_morton_kernel, 1, num, [points32, box], [keys, order])
+    if points32.device.is_cpu:
+        wp.utils.radix_sort_pairs(keys, order, num)
+
+
+# ---------------------------------------------------------------------------------------------
+# Building.
+
+
+@wp.kernel
+def _centroid_kernel(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), offset: wp.int32, centroids: wp.array(dtype=wp.vec3)):
+    _, t = wp.tid()
+    f = t + offset
+    centroids[f] = (vertices[indices[3 * f]] + vertices[indices[3 * f + 1]] + vertices[indices[3 * f + 2]]) / 3.0
+
+
+@wp.kernel
+def _box_kernel(points: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.float32)):
+    """One thread: the Morton box (low corner, 1023 / largest side) of finite ``points``."""
+    low = wp.vec3(FLOAT32_MAX, FLOAT32_MAX, FLOAT32_MAX)
+    high = -low
+    for i in range(points.shape[0]):
+        p = points[i]
+        if wp.isfinite(p):
+            low = wp.min(low, p)
+            high = wp.max(high, p)
+    size = wp.max(wp.max(high[0] - low[0], high[1] - low[1]), high[2] - low[2])
+    if not (size > 0.0):
+        low = wp.vec3(0.0, 0.0, 0.0)
+        size = 1.0
+    box[0] = low[0]
+    box[1] = low[1]
+    box[2] = low[2]
+    box[3] = 1023.0 / size
+
+
+@wp.kernel
+def _gather_kernel(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    sorted_faces: wp.array(dtype=wp.int32),
+    offset: wp.int32,
+    faces: wp.array(dtype=wp.int32),
+    corners: wp.array(dtype=wp.vec3),
+):
+    _, t = wp.tid()
+    s = t + offset
+    f = sorted_faces[s]
+    faces[s] = f
+    for k in range(3):
+        corners[3 * s + k] = vertices[indices[3 * f + k]]
+
+
+@wp.func
+def _volume(size: wp.vec3):
+    return size[0] * size[1] * size[2]
+
+
+@wp.func
+def _normal_frame(normal: wp.vec3):
+    """Rows: two unit tangents and the unit ``normal`` (the first tangent is the least-aligned axis, projected)."""
+    axis = wp.vec3(1.0, 0.0, 0.0)
+    if wp.abs(normal[1]) < wp.abs(normal[0]) and wp.abs(normal[1]) <= wp.abs(normal[2]):
+        axis = wp.vec3(0.0, 1.0, 0.0)
+    elif wp.abs(normal[2]) < wp.abs(normal[0]) and wp.abs(normal[2]) < wp.abs(normal[1]):
+        axis = wp.vec3(0.0, 0.0, 1.0)
+    tangent = wp.normalize(axis - wp.dot(axis, normal) * normal)
+    return wp.matrix_from_rows(tangent, wp.cross(normal, tangent), normal)
+
+
+@wp.kernel
+def _node_kernel(
+    corners: wp.array(dtype=wp.vec3),
+    num_faces: wp.int64,
+    levels: wp.int32,
+    offset: wp.int32,
+    nodes: wp.array(dtype=wp.mat44),
+    leaf_starts: wp.array(dtype=wp.int32),
+):
+    """The box of node ``n = t + offset + 1`` over its range of sorted faces."""
+    _, t = wp.tid()
+    n = t + offset + 1
+    level = int(0)
+    while (n >> (level + 1)) != 0:
+        level += 1
+    index = wp.int64(n - (1 << level))
+    start = wp.int32((index * num_faces) >> wp.int64(level))
+    end = wp.int32(((index + wp.int64(1)) * num_faces) >> wp.int64(level))
+    if level == levels:
+        leaf_starts[n - (1 << level)] = start
+        if n == (2 << level) - 1:
+            leaf_starts[n - (1 << level) + 1] = end
+    normal_sum = wp.vec3(0.0, 0.0, 0.0)
+    area_sum = float(0.0)
+    low = wp.vec3(FLOAT32_MAX, FLOAT32_MAX, FLOAT32_MAX)
+    high = -low
+    for s in range(start, end):
+        a = corners[3 * s]
+        b = corners[3 * s + 1]
+        c = corners[3 * s + 2]
+        area_normal = wp.cross(b - a, c - a)
+        normal_sum += area_normal
+        area_sum += wp.length(area_normal)
+        low = wp.min(low, wp.min(a, wp.min(b, c)))
+        high = wp.max(high, wp.max(a, wp.max(b, c)))
+    frame = wp.identity(3, dtype=float)
+    normal_length = wp.length(normal_sum)
+    if normal_length > FLAT_ENOUGH * area_sum and normal_length > 0.0:
+        rotated = _normal_frame(normal_sum / normal_length)
+        rotated_low = wp.vec3(FLOAT32_MAX, FLOAT32_MAX, FLOAT32_MAX)
+        rotated_high = -rotated_low
+        for s in range(3 * start, 3 * end):
+            q = rotated * corners[s]
+            rotated_low = wp.min(rotated_low, q)
+            rotated_high = wp.max(rotated_high, q)
+        if _volume(rotated_high - rotated_low) < _volume(high - low):
+            frame = rotated
+            low = rotated_low
+            high = rotated_high
+    center = 0.5 * (low + high)
+    half = 0.5 * (high - low)
+    magnitude = wp.max(wp.max(wp.abs(center[0]), wp.abs(center[1])), wp.abs(center[2]))
+    magnitude += wp.max(wp.max(half[0], half[1]), half[2])
+    half += wp.vec3(BOX_PAD * magnitude)
+    nodes[n] = wp.matrix_from_rows(
+        wp.vec4(frame[0, 0], frame[0, 1], frame[0, 2], center[0]),
+        wp.vec4(frame[1, 0], frame[1, 1], frame[1, 2], center[1]),
+        wp.vec4(frame[2, 0], frame[2, 1], frame[2, 2], center[2]),
+        wp.vec4(half[0], half[1], half[2], 0.0),
+    )
+
+
+def build_tree(vertices, indices) -> dict:
+    """The tree (Warp arrays by :data:`TREE_ARRAYS` name) of float32 ``(V, 3)`` vertices and flat int32 indices.
+
+    Runs on the arrays' device; ``F = len(indices) // 3 >= 1``. The box work is ``O(F log F)``
+    (each level reads every face once).
+    """
+    device = vertices.device
+    num_faces = indices.shape[0] // 3
+    shapes = tree_shapes(num_faces)
+    centroids = wp.empty(num_faces, dtype=wp.vec3, device=device)
+    launch_in_chunks(_centroid_kernel, 1, num_faces, [vertices, indices], [centroids])
+    box = wp.empty(4, dtype=wp.float32, device=device)
+    wp.launch(_box_kernel, dim=1, inputs=[centroids], outputs=[box], device=device)
+    keys = wp.empty(2 * num_faces, dtype=wp.int32, device=device)
+    order = wp.empty(2 * num_faces, dtype=wp.int32, device=device)
+    launch_in_chunks(_morton_kernel, 1, num_faces, [centroids, box], [keys, order])
+    wp.utils.radix_sort_pairs(keys, order, num_faces)
+    arrays = {
+        "nodes": wp.empty(shapes["nodes"], dtype=wp.mat44, device=device),
+        "leaf_starts": wp.empty(shapes["leaf_starts"], dtype=wp.int32, device=device),
+        "faces": wp.empty(num_faces, dtype=wp.int32, device=device),
+        "corners": wp.empty(3 * num_faces, dtype=wp.vec3, device=device),
+    }
+    launch_in_chunks(_gather_kernel, 1, num_faces, [vertices, indices, order], [arrays["faces"], arrays["corners"]])
+    num_nodes = shapes["nodes"][0] - 1
+    levels = num_nodes.bit_length() - 1
+    inputs = [arrays["corners"], np.int64(num_faces), levels]
+    launch_in_chunks(_node_kernel, 1, num_nodes, inputs, [arrays["nodes"], arrays["leaf_starts"]])
+    return arrays
