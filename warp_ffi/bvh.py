@@ -22,7 +22,7 @@ discard them at the end of the call: then the whole query, construction included
 Searches (``point_faces``, ``ray_hits``):
 
 * Closest face: a float32 search of the oriented-box tree (``_nearest_kernel``; each query starts
-  from the previous Morton-ordered query's face), or Warp's ``mesh_query_point_sign_winding_number``
+  from the previous Morton-ordered query's face on CPU), or Warp's ``mesh_query_point_sign_winding_number``
   (accuracy 2.0 and threshold 0.5, its defaults) for winding signs, with the radius padded by
   ``2**-16`` of the coordinate magnitudes, so rounding never loses a face at the gate; the caller
   re-gates exactly.
@@ -65,7 +65,9 @@ FLOAT32_MAX = wp.constant(3.4028234663852886e38)
 SIGN_MODES = {"none": 0, "normal": 1, "winding": 2}
 WINDING_ACCURACY = wp.constant(2.0)
 WINDING_THRESHOLD = wp.constant(0.5)
-SEARCH_BATCH = wp.constant(32)  # Morton-consecutive queries per thread of the nearest search
+# Morton-consecutive queries per thread of the nearest search on CPU (on CUDA one per thread:
+# queries are not sorted there, and a GPU needs the threads).
+CPU_SEARCH_BATCH = 32
 
 
 # ---------------------------------------------------------------------------------------------
@@ -246,21 +248,22 @@ def _nearest_kernel(
     points: wp.array(dtype=wp.vec3),
     params: wp.array(dtype=wp.float32),
     skip_slivers: wp.int32,
+    batch_size: wp.int32,
     order: wp.array(dtype=wp.int32),
     offset: wp.int32,
     faces_out: wp.array(dtype=wp.int32),
     sign_out: wp.array(dtype=wp.float32),
 ):
-    """Closest face in float32 over the oriented-box tree, for ``SEARCH_BATCH`` queries in a row.
+    """Closest face in float32 over the oriented-box tree, for ``batch_size`` queries in a row.
 
     Queries come in Morton order, so the previous query's face is usually at or next to this
     one's: its distance starts the search as the bound. The nearer child is entered first and
     the other deferred with its box distance, skipped when popped if the bound has shrunk past it.
     """
     _, batch = wp.tid()
-    first = (batch + offset) * SEARCH_BATCH
+    first = (batch + offset) * batch_size
     previous = int(-1)
-    for t in range(first, wp.min(first + SEARCH_BATCH, points.shape[0])):
+    for t in range(first, wp.min(first + batch_size, points.shape[0])):
         i = order[t]
         p = points[i]
         faces_out[i] = -1
@@ -612,8 +615,9 @@ def _point_callable(dtype, sign_mode: int, exact: bool, measure: bool, build: bo
         if winding:
             launch_in_chunks(_winding_search_kernel, 1, num, [mesh_words, points32, params32, order], [faces_out, sign_out])
         else:
-            inputs = [tree, points32, params32, int(sign_mode != SIGN_MODES["none"]), order]
-            launch_in_chunks(_nearest_kernel, 1, -(-num // SEARCH_BATCH), inputs, [faces_out, sign_out], min_chunk=256)
+            batch = CPU_SEARCH_BATCH if points32.device.is_cpu else 1
+            inputs = [tree, points32, params32, int(sign_mode != SIGN_MODES["none"]), batch, order]
+            launch_in_chunks(_nearest_kernel, 1, -(-num // batch), inputs, [faces_out, sign_out], min_chunk=256)
         if exact:
             inputs = [tree, points32, points, vertices, faces, params, int(sign_mode != SIGN_MODES["none"]), order]
             launch_in_chunks(_refine[dtype], 1, num, inputs, [faces_out])
