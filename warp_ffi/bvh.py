@@ -257,7 +257,9 @@ def _nearest_kernel(
     """Closest face in float32 over the oriented-box tree, for ``batch_size`` queries in a row.
 
     Queries come in Morton order, so the previous query's face is usually at or next to this
-    one's: its distance starts the search as the bound. The nearer child is entered first and
+    one's: its distance starts the search as the bound. Equal float32 distances go to the lowest
+    face id (boxes within the bound are opened, ties included), so a query's answer does not
+    depend on which queries it was searched with. The nearer child is entered first and
     the other deferred with its box distance, skipped when popped if the bound has shrunk past it.
     """
     _, batch = wp.tid()
@@ -308,7 +310,8 @@ def _nearest_kernel(
                     if skip_slivers != 0 and is_sliver(a, b, c):
                         continue
                     d2 = triangle_distance_sq(p, a, b, c)
-                    if d2 < bound or (d2 == bound and best < 0):
+                    # Ties go to the lowest face id, so the answer does not depend on the warm start.
+                    if d2 < bound or (d2 == bound and (best < 0 or tree.faces[s] < tree.faces[best])):
                         bound = d2
                         best = s
             if depth == 0:

@@ -79,6 +79,29 @@ def test_oriented_box_tree_search_is_exact_on_a_finely_tessellated_sphere(dtype)
     np.testing.assert_array_equal(np.asarray(ids)[unique], np.asarray(expected)[unique])
 
 
+def test_float32_ties_do_not_depend_on_the_other_queries():
+    # Points straight out from the vertices: 5-6 faces tie at the vertex. The float32 search (no
+    # refinement: signed_distance_field) starts from the previous query's face, yet ties must go
+    # the same way whatever the neighbouring queries are.
+    from geomjax import signed_distance_field
+
+    vertices, faces = _sphere(jnp.float32, 2)
+    ties = jnp.concatenate([vertices * 1.5, vertices * 0.5])
+    # Neighbours just off each tie have one of the tied faces as their unique answer, and may
+    # precede the tie in the search order.
+    nudges = jnp.asarray(np.random.default_rng(6).normal(scale=0.01, size=(4,) + ties.shape), jnp.float32)
+    points = jnp.concatenate([ties, *(ties + nudge for nudge in nudges)])
+
+    def face_ids(p):
+        return np.asarray(signed_distance_field(vertices, faces, p, implementation="warp")[2])
+
+    ids = face_ids(points)
+    permutation = np.random.default_rng(5).permutation(points.shape[0])
+    np.testing.assert_array_equal(face_ids(points[permutation]), ids[permutation])
+    alone = [int(face_ids(points[k : k + 1])[0]) for k in range(0, ties.shape[0], 7)]
+    np.testing.assert_array_equal(alone, ids[: ties.shape[0] : 7])
+
+
 @pytest.mark.parametrize("num_faces", [1, 2, 3, 5, 7, 9, 13, 33])
 def test_tree_leaves_cover_every_face_count(num_faces):
     # The tree's leaves tile the sorted faces in 1-2 face ranges; odd counts leave uneven ones.
