@@ -53,7 +53,7 @@ import numpy as np
 
 from ._kernels import WARP_SCALAR, launch_in_chunks
 from ._kernels import warp as wp
-from ._obb_tree import Tree, build_tree, leaf_within, next_after, node_distance_sq, query_order, tree_struct
+from ._obb_tree import TREE_ARRAYS, Tree, build_tree, leaf_within, next_after, node_distance_sq, query_order, tree_struct
 
 wp.set_module_options({"enable_backward": False})
 
@@ -121,7 +121,8 @@ def closest_tree(vertices, faces_flat, device) -> tuple:
     """
     vertices = wp.array(np.ascontiguousarray(vertices, np.float32), dtype=wp.vec3, device=device)
     faces_flat = wp.array(np.ascontiguousarray(faces_flat, np.int32), dtype=wp.int32, device=device)
-    return tuple(jax.dlpack.from_dlpack(array) for array in build_tree(vertices, faces_flat).values())
+    arrays = build_tree(vertices, faces_flat)
+    return tuple(jax.dlpack.from_dlpack(arrays[name]) for name in TREE_ARRAYS)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -635,7 +636,7 @@ def _point_callable(dtype, sign_mode: int, exact: bool, measure: bool, build: bo
         def body(vertices32, faces_flat, *args):
             # Winding signs come from Warp's mesh; every other search uses the oriented-box tree.
             mesh, words = _words_of_built(vertices32, faces_flat, True) if winding else (None, None)
-            tree = tree_struct(*build_tree(vertices32, faces_flat).values()) if exact or not winding else None
+            tree = tree_struct(**build_tree(vertices32, faces_flat)) if exact or not winding else None
             run(tree, words, *args)
             del mesh
 
