@@ -153,30 +153,6 @@ def _morton_kernel(
     order_out[i] = i
 
 
-def query_order(points32, box, keys, order) -> None:
-    """Fill ``order`` with a permutation of the points that visits them in Morton order on CPU.
-
-    Neighbouring queries then walk the same tree nodes while they are in cache (1.5-3x faster on
-    CPU for a million points) and the search's warm start is close. On CUDA the order is the
-    identity. ``keys``/``order`` are scratch of length ``2 N`` (Warp's radix sort needs it).
-    """
-    num = points32.shape[0]
-    launch_in_chunks(_morton_kernel, 1, num, [points32, box], [keys, order])
-    if points32.device.is_cpu:
-        wp.utils.radix_sort_pairs(keys, order, num)
-
-
-# ---------------------------------------------------------------------------------------------
-# Building.
-
-
-@wp.kernel
-def _centroid_kernel(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), offset: wp.int32, centroids: wp.array(dtype=wp.vec3)):
-    _, t = wp.tid()
-    f = t + offset
-    centroids[f] = (vertices[indices[3 * f]] + vertices[indices[3 * f + 1]] + vertices[indices[3 * f + 2]]) / 3.0
-
-
 @wp.kernel
 def _box_kernel(points: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.float32)):
     """One thread: the Morton box (low corner, 1023 / largest side) of finite ``points``."""
@@ -195,6 +171,49 @@ def _box_kernel(points: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.float32)
     box[1] = low[1]
     box[2] = low[2]
     box[3] = 1023.0 / size
+
+
+@wp.kernel
+def _identity_kernel(offset: wp.int32, order_out: wp.array(dtype=wp.int32)):
+    _, t = wp.tid()
+    order_out[t + offset] = t + offset
+
+
+def morton_order(points, keys, order) -> None:
+    """Fill ``order`` with the permutation that sorts ``points`` along the Morton curve of their box.
+
+    ``points``: ``(N,)`` vec3; ``keys``/``order``: int32 scratch of length ``2 N`` (Warp's radix
+    sort needs it). Non-finite points come first (code 0).
+    """
+    num = points.shape[0]
+    box = wp.empty(4, dtype=wp.float32, device=points.device)
+    wp.launch(_box_kernel, dim=1, inputs=[points], outputs=[box], device=points.device)
+    launch_in_chunks(_morton_kernel, 1, num, [points, box], [keys, order])
+    wp.utils.radix_sort_pairs(keys, order, num)
+
+
+def query_order(points32, keys, order) -> None:
+    """Fill ``order`` with a permutation of the points that visits them in Morton order on CPU.
+
+    Neighbouring queries then walk the same tree nodes while they are in cache (1.5-3x faster on
+    CPU for a million points) and the search's warm start is close. On CUDA the order is the
+    identity (the sort is not measured there yet). ``keys``/``order`` as in :func:`morton_order`.
+    """
+    if points32.device.is_cpu:
+        morton_order(points32, keys, order)
+    else:
+        launch_in_chunks(_identity_kernel, 1, points32.shape[0], [], [order])
+
+
+# ---------------------------------------------------------------------------------------------
+# Building.
+
+
+@wp.kernel
+def _centroid_kernel(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), offset: wp.int32, centroids: wp.array(dtype=wp.vec3)):
+    _, t = wp.tid()
+    f = t + offset
+    centroids[f] = (vertices[indices[3 * f]] + vertices[indices[3 * f + 1]] + vertices[indices[3 * f + 2]]) / 3.0
 
 
 @wp.kernel
@@ -304,17 +323,14 @@ def build_tree(vertices, indices) -> dict:
     shapes = tree_shapes(num_faces)
     centroids = wp.empty(num_faces, dtype=wp.vec3, device=device)
     launch_in_chunks(_centroid_kernel, 1, num_faces, [vertices, indices], [centroids])
-    box = wp.empty(4, dtype=wp.float32, device=device)
-    wp.launch(_box_kernel, dim=1, inputs=[centroids], outputs=[box], device=device)
     keys = wp.empty(2 * num_faces, dtype=wp.int32, device=device)
     order = wp.empty(2 * num_faces, dtype=wp.int32, device=device)
-    launch_in_chunks(_morton_kernel, 1, num_faces, [centroids, box], [keys, order])
-    wp.utils.radix_sort_pairs(keys, order, num_faces)
+    morton_order(centroids, keys, order)
     arrays = {
         "nodes": wp.empty(shapes["nodes"], dtype=wp.mat44, device=device),
         "leaf_starts": wp.empty(shapes["leaf_starts"], dtype=wp.int32, device=device),
-        "faces": wp.empty(num_faces, dtype=wp.int32, device=device),
-        "corners": wp.empty(3 * num_faces, dtype=wp.vec3, device=device),
+        "faces": wp.empty(shapes["faces"], dtype=wp.int32, device=device),
+        "corners": wp.empty(shapes["corners"], dtype=wp.vec3, device=device),
     }
     launch_in_chunks(_gather_kernel, 1, num_faces, [vertices, indices, order], [arrays["faces"], arrays["corners"]])
     num_nodes = shapes["nodes"][0] - 1

@@ -604,8 +604,7 @@ _TREE_HEAD = {"nodes": _array(wp.mat44), "leaf_starts": _ints, "sorted_faces": _
 def _point_callable(dtype, sign_mode: int, exact: bool, measure: bool, build: bool):
     dtype = jnp.dtype(dtype)
     vec, scalar = _array(_vec[dtype]), _array(WARP_SCALAR[dtype])
-    names = {"points32": _vec3f, "points": vec, "vertices": vec, "faces": _faces_t, "params32": _array(wp.float32),
-             "params": scalar, "box": _array(wp.float32)}  # fmt: skip
+    names = {"points32": _vec3f, "points": vec, "vertices": vec, "faces": _faces_t, "params32": _array(wp.float32), "params": scalar}
     outputs = {"faces_out": _ints, "sign_out": _array(wp.float32), "keys_scratch": _ints, "order_scratch": _ints}
     if measure:
         outputs.update(distance_out=scalar, closest_out=vec)
@@ -613,9 +612,9 @@ def _point_callable(dtype, sign_mode: int, exact: bool, measure: bool, build: bo
     if winding and not build:
         raise ValueError("winding-number signs need the BVH built in the call")
 
-    def run(tree, mesh_words, points32, points, vertices, faces, params32, params, box, faces_out, sign_out, keys, order, *measured):
+    def run(tree, mesh_words, points32, points, vertices, faces, params32, params, faces_out, sign_out, keys, order, *measured):
         num = points32.shape[0]
-        query_order(points32, box, keys, order)
+        query_order(points32, keys, order)
         if winding:
             launch_in_chunks(_winding_search_kernel, 1, num, [mesh_words, points32, params32, order], [faces_out, sign_out])
         else:
@@ -712,16 +711,10 @@ def point_faces(mesh, points, vertices, faces, max_distance, extent, *, sign_mod
     callable_ = _point_callable(jnp.dtype(dtype), SIGN_MODES[sign_mode], exact, measure, len(mesh) == len(_BUILD_HEAD))
     num = points.shape[0]
     points32 = points.astype(jnp.float32)
-    finite = jnp.isfinite(points32)
-    low = jnp.min(jnp.where(finite, points32, jnp.inf), axis=0)
-    high = jnp.max(jnp.where(finite, points32, -jnp.inf), axis=0)
-    low = jnp.where(jnp.isfinite(low), low, 0)
-    size = jnp.max(jnp.where(jnp.isfinite(high), high, 0) - low)
-    box = jnp.concatenate([low, (1023.0 / jnp.where(size > 0, size, 1.0))[None]]).astype(jnp.float32)
     dims = {"faces_out": (num,), "sign_out": (num,), "keys_scratch": (2 * num,), "order_scratch": (2 * num,),
             "distance_out": (num,), "closest_out": (num,)}  # fmt: skip
     faces_out, sign_out, _, _, *measured = callable_(
-        *_mesh_inputs(mesh), points32, points, vertices, faces, params32, params, box, output_dims=dims
+        *_mesh_inputs(mesh), points32, points, vertices, faces, params32, params, output_dims=dims
     )
     return (faces_out, sign_out, *measured)
 
