@@ -129,10 +129,10 @@ class MeshBVH(eqx.Module):
         if vertices.shape != self.vertices.shape:
             raise ValueError(f"refit: vertices must have the BVH's shape {tuple(self.vertices.shape)}, got {tuple(vertices.shape)}")
         host = _concrete_vertices("MeshBVH.refit", vertices)
-        from warp_ffi.bvh import refit_mesh
+        from warp_ffi.bvh import closest_tree, refit_mesh
 
         refit_mesh(self._mesh(), host)
-        tree = _closest_tree(host, self.faces, vertices)
+        tree = closest_tree(host, np.asarray(self.faces).reshape(-1), _warp_device(vertices))
         return MeshBVH(vertices, self.faces, self.mesh_words, self.winding_number, self._mesh, tree)
 
 
@@ -184,26 +184,22 @@ def build_bvh(
     vertices, faces = checked_mesh("build_bvh", vertices, faces, concrete=True)
     host_vertices = _concrete_vertices("build_bvh", vertices)
     host_faces = np.asarray(faces)
+    from warp_ffi.bvh import build_mesh, closest_tree, mesh_handle
+
+    device = _warp_device(vertices)
+    # The tree takes the faces as given (orientation does not matter to a closest-point search).
+    tree = closest_tree(host_vertices, host_faces.reshape(-1), device)
     if winding_number:
         host_faces = _oriented_faces_numpy(host_faces)
-    from warp_ffi.bvh import build_mesh, mesh_handle
-
-    import warp
-
-    device = warp.device_from_jax(next(iter(vertices.devices())))
     mesh = build_mesh(host_vertices, host_faces.reshape(-1), winding_number=winding_number, device=device)
-    words = mesh_handle(mesh)
-    return MeshBVH(vertices, faces, words, winding_number, _WarpMeshRef(mesh), _closest_tree(host_vertices, faces, vertices))
+    return MeshBVH(vertices, faces, mesh_handle(mesh), winding_number, _WarpMeshRef(mesh), tree)
 
 
-def _closest_tree(host_vertices: np.ndarray, faces: jax.Array, vertices: jax.Array) -> tuple:
-    """The oriented-box tree of the (float32) vertices and the input faces, on the vertices' device."""
+def _warp_device(array: jax.Array):
+    """The Warp device of a (single-device) JAX array."""
     import warp
 
-    from warp_ffi.bvh import closest_tree
-
-    device = warp.device_from_jax(next(iter(vertices.devices())))
-    return closest_tree(host_vertices, np.asarray(faces).reshape(-1), device)
+    return warp.device_from_jax(next(iter(array.devices())))
 
 
 def closest_faces(
@@ -219,8 +215,8 @@ def closest_faces(
     float64: a float32 search of the BVH's oriented-box tree gives a first face, every face
     within that distance (plus a ``2**-16`` relative pad that covers float32 rounding) is
     enumerated with conservative box bounds and measured again in the vertices' dtype, with
-    :func:`closest_point_on_triangle`'s rule. Measurements are made by a Warp kernel, so a near-tie (distances equal to rounding)
-    may resolve differently from the JAX brute force.
+    :func:`closest_point_on_triangle`'s rule. Measurements are made by a Warp kernel, so a
+    near-tie (distances equal to rounding) may resolve differently from the JAX brute force.
 
     Args:
         bvh: a :class:`MeshBVH`.
