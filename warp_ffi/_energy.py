@@ -8,8 +8,8 @@ Conventions of every energy kernel (``measure``, ``strain``, ``bending``, ``volu
   narrowing (they could otherwise wrap into range); the kernels check every index against
   ``[0, N)`` before reading, so no kernel ever reads out of bounds.
 * Launches are ``(B, items)`` with a trailing ``offset`` input added to the item index, so a CPU
-  launch is split over the cores (:func:`launch`); adjoint kernels accumulate into per-thread
-  buffers with plain ``atomic_add``.
+  launch is split over the cores (chunked, balanced kernel families); adjoint kernels accumulate
+  into per-thread buffers with plain ``atomic_add``.
 * A primitive with an out-of-range index, non-finite coordinates or degenerate reference geometry
   is invalid: the forward kernel writes NaN and the adjoint kernel skips it (no gradient), the
   same rule as the JAX implementation in ``geomjax.energy``.
@@ -26,12 +26,17 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from ._kernels import MIN_CHUNK, cpu_threads, launch_in_chunks
-from ._kernels import warp as wp
+from ._wrap import KernelFamily, with_adjoint
+from ._wrap import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
 _NO_VERTEX = wp.constant(2147483647)  # sorts after every real index
+
+# The energy kernels' argument types (float types resolved per overload).
+Coordinates = wp.array(dtype=Any)  # (B*N,) 3-vectors: points, reference points, their cotangents
+PerItem = wp.array(dtype=Any)  # (B*M,) one value per primitive (cell, face, hinge) and design
+Topology = wp.array2d(dtype=wp.int32)  # (M, K) vertex indices
 
 
 @wp.func
@@ -93,6 +98,28 @@ def finite3(a: Any, b: Any, c: Any):
     zero = type(a[0])(0.0)
     probe = a * zero + b * zero + c * zero
     return probe[0] + probe[1] + probe[2] == zero
+
+
+@wp.func
+def load_cell(points: Coordinates, reference: Coordinates, cells: Topology, b: int, c: int, num_points: int):
+    """Cell ``c`` of design ``b``: sorted vertices, current and reference edges, and whether all
+    its indices are in range and its coordinates finite (edges are zero when not in range)."""
+    m = cells.shape[1] - 1
+    v, in_range = sorted_cell(cells, c, num_points)
+    zero = points[0] - points[0]
+    e0 = zero
+    e1 = zero
+    e2 = zero
+    a0 = zero
+    a1 = zero
+    a2 = zero
+    usable = False
+    if in_range:
+        base = b * num_points
+        e0, e1, e2 = cell_edges(points, base, v, m)
+        a0, a1, a2 = cell_edges(reference, base, v, m)
+        usable = finite3(e0, e1, e2) and finite3(a0, a1, a2)
+    return v, usable, e0, e1, e2, a0, a1, a2
 
 
 @wp.func
@@ -159,7 +186,42 @@ def scatter_edge_gradients(grad: wp.array(dtype=Any), base: int, v: wp.vec4i, m:
 
 
 # ---------------------------------------------------------------------------------------------
-# JAX-side preparation of kernel inputs.
+# JAX side.
+
+
+def energy_family(kernel, types, *, outputs, accumulate=()) -> KernelFamily:
+    """A chunked family over ``(B, items)`` whose items all cost about the same (one chunk per thread)."""
+    return KernelFamily(kernel, types, outputs=outputs, accumulate=accumulate, chunked=True, balanced=True)
+
+
+GRADIENT_NAMES = ("points_bar", "reference_bar")
+
+
+def per_item_terms(forward: KernelFamily, adjoint: KernelFamily):
+    """The differentiable ``terms(points, reference, topology, extras, num_batch, statics)``.
+
+    ``forward`` computes per-item outputs ``(B*M,)`` from the flat coordinates ``(B*N, 3)``,
+    the ``(M, K)`` topology, the ``extras`` arrays (not differentiated), ``N`` and the static
+    scalars ``statics``; ``adjoint`` takes the same inputs with the outputs' cotangents after
+    ``extras`` and scatters ``points_bar`` and ``reference_bar``.
+    """
+
+    def run_forward(points, reference, topology, extras, num_batch, statics):
+        num_points, num_items = points.shape[0] // num_batch, topology.shape[0]
+        shapes = dict.fromkeys(forward.outputs, (num_batch * num_items,))
+        call = forward(points.dtype)
+        outputs = call(points, reference, topology, *extras, num_points, *statics, launch=(num_batch, num_items), shapes=shapes)
+        return outputs, ()
+
+    def run_adjoint(args, saved, cotangents):
+        points, reference, topology, extras, num_batch, statics = args
+        num_points, num_items = points.shape[0] // num_batch, topology.shape[0]
+        shapes = dict.fromkeys(GRADIENT_NAMES, points.shape[:1])
+        call = adjoint(points.dtype)
+        return call(points, reference, topology, *extras, *cotangents, num_points, *statics, launch=(num_batch, num_items), shapes=shapes)
+
+    return with_adjoint(run_forward, run_adjoint, static_argnums=(4, 5), constant_argnums=(2, 3))
+
 
 KERNEL_DIMS = 3
 
@@ -172,6 +234,11 @@ def flat_vectors(points: jax.Array) -> jax.Array:
     return points.reshape(-1, KERNEL_DIMS)
 
 
+def kernel_inputs(points: jax.Array, reference_points: jax.Array, topology: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(B, N, D)`` coordinates and ``(M, K)`` topology as the kernels take them (see the module docstring)."""
+    return flat_vectors(points), flat_vectors(reference_points), kernel_indices(topology, points.shape[1])
+
+
 def kernel_indices(topology: jax.Array, num_points: int) -> jax.Array:
     """int32 topology for the kernels.
 
@@ -182,14 +249,3 @@ def kernel_indices(topology: jax.Array, num_points: int) -> jax.Array:
         return topology
     in_range = (topology >= 0) & (topology < num_points)
     return jnp.where(in_range, topology, -1).astype(jnp.int32)
-
-
-def launch(kernel, num_batch: int, num_items: int, inputs: list, outputs: list, accumulated=()) -> None:
-    """``launch_in_chunks`` with one chunk per CPU thread.
-
-    Every item of an energy kernel costs about the same, so more chunks buy no balance, while
-    each launch costs tens of microseconds of Python-side overhead (more than a whole chunk of a
-    cheap kernel).
-    """
-    min_chunk = max(MIN_CHUNK, num_items // cpu_threads())
-    launch_in_chunks(kernel, num_batch, num_items, inputs, outputs, accumulated, min_chunk=min_chunk)

@@ -25,20 +25,21 @@ Arrays (a :class:`Tree` struct in kernels, :data:`TREE_ARRAYS` order in JAX), ``
 * ``faces`` ``(F,)`` int32: the original face id of each sorted face;
 * ``corners`` ``(3 F,)`` vec3: float32 corners of the sorted faces (contiguous for the search).
 
-The traversal is stackless (:func:`leaf_within`): the implicit layout gives the next node in
-depth-first order from the current one, so a search carries a single node index.
+The traversal is stackless (:func:`leaf_within`, :func:`next_face_within`): the implicit layout
+gives the next node in depth-first order from the current one, so a search carries a single node
+index.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ._kernels import launch_in_chunks
-from ._kernels import warp as wp
+from ._grid import FLOAT32_MAX, morton_order
+from ._wrap import launch_in_chunks
+from ._wrap import warp as wp
 
-__all__ = ["Tree", "TREE_ARRAYS", "build_tree", "leaf_within", "next_after", "node_distance_sq", "query_order", "tree_struct"]
+__all__ = ["Tree", "TREE_ARRAYS", "build_tree", "leaf_within", "next_after", "next_face_within", "node_distance_sq", "tree_struct"]
 
-FLOAT32_MAX = wp.constant(3.4028234663852886e38)
 BOX_PAD = wp.constant(2.0**-16)  # relative widening of every node box (float32 rounding)
 FLAT_ENOUGH = wp.constant(0.5)  # |sum of area normals| / sum of areas above this: try a normal frame
 
@@ -112,97 +113,23 @@ def leaf_within(tree: Tree, p: wp.vec3, radius_sq: float, node: int):
     return 0
 
 
-# ---------------------------------------------------------------------------------------------
-# Morton order (of face centroids here, of query points in ``bvh``).
-
-
 @wp.func
-def _spread_bits(x: wp.int32):
-    """The 10 low bits of ``x`` moved to every third bit (for a 30-bit Morton code)."""
-    v = wp.uint32(x) & wp.uint32(0x3FF)
-    v = (v | (v << wp.uint32(16))) & wp.uint32(0x030000FF)
-    v = (v | (v << wp.uint32(8))) & wp.uint32(0x0300F00F)
-    v = (v | (v << wp.uint32(4))) & wp.uint32(0x030C30C3)
-    v = (v | (v << wp.uint32(2))) & wp.uint32(0x09249249)
-    return v
+def next_face_within(tree: Tree, p: wp.vec3, radius_sq: float, leaf: int, s: int):
+    """The sorted face after ``s`` in the leaves within ``sqrt(radius_sq)`` of ``p``, as ``(leaf, s)``.
 
-
-@wp.func
-def _cell(x: float, low: float, scale: float):
-    return wp.int32(wp.clamp((x - low) * scale, 0.0, 1023.0))
-
-
-@wp.kernel
-def _morton_kernel(
-    points: wp.array(dtype=wp.vec3),
-    box: wp.array(dtype=wp.float32),
-    offset: wp.int32,
-    keys_out: wp.array(dtype=wp.int32),
-    order_out: wp.array(dtype=wp.int32),
-):
-    """Morton code of each point on a 1024^3 grid over ``box`` = (low corner, 1023 / size) (non-finite: 0)."""
-    _, t = wp.tid()
-    i = t + offset
-    p = points[i]
-    code = wp.uint32(0)
-    if wp.isfinite(p):
-        code = _spread_bits(_cell(p[0], box[0], box[3]))
-        code = code | (_spread_bits(_cell(p[1], box[1], box[3])) << wp.uint32(1))
-        code = code | (_spread_bits(_cell(p[2], box[2], box[3])) << wp.uint32(2))
-    keys_out[i] = wp.int32(code)
-    order_out[i] = i
-
-
-@wp.kernel
-def _box_kernel(points: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.float32)):
-    """One thread: the Morton box (low corner, 1023 / largest side) of finite ``points``."""
-    low = wp.vec3(FLOAT32_MAX, FLOAT32_MAX, FLOAT32_MAX)
-    high = -low
-    for i in range(points.shape[0]):
-        p = points[i]
-        if wp.isfinite(p):
-            low = wp.min(low, p)
-            high = wp.max(high, p)
-    size = wp.max(wp.max(high[0] - low[0], high[1] - low[1]), high[2] - low[2])
-    if not (size > 0.0):
-        low = wp.vec3(0.0, 0.0, 0.0)
-        size = 1.0
-    box[0] = low[0]
-    box[1] = low[1]
-    box[2] = low[2]
-    box[3] = 1023.0 / size
-
-
-@wp.kernel
-def _identity_kernel(offset: wp.int32, order_out: wp.array(dtype=wp.int32)):
-    _, t = wp.tid()
-    order_out[t + offset] = t + offset
-
-
-def morton_order(points, keys, order) -> None:
-    """Fill ``order`` with the permutation that sorts ``points`` along the Morton curve of their box.
-
-    ``points``: ``(N,)`` vec3; ``keys``/``order``: int32 scratch of length ``2 N`` (Warp's radix
-    sort needs it). Non-finite points come first (code 0).
+    Enumerate with ``leaf, s = next_face_within(tree, p, r2, 0, 0)`` and, while ``leaf != 0``,
+    ``leaf, s = next_face_within(tree, p, r2, leaf, s)``: faces come leaf by leaf in depth-first
+    order (every leaf holds at least one face).
     """
-    num = points.shape[0]
-    box = wp.empty(4, dtype=wp.float32, device=points.device)
-    wp.launch(_box_kernel, dim=1, inputs=[points], outputs=[box], device=points.device)
-    launch_in_chunks(_morton_kernel, 1, num, [points, box], [keys, order])
-    wp.utils.radix_sort_pairs(keys, order, num)
-
-
-def query_order(points32, keys, order) -> None:
-    """Fill ``order`` with a permutation of the points that visits them in Morton order on CPU.
-
-    Neighbouring queries then walk the same tree nodes while they are in cache (1.5-3x faster on
-    CPU for a million points) and the search's warm start is close. On CUDA the order is the
-    identity (the sort is not measured there yet). ``keys``/``order`` as in :func:`morton_order`.
-    """
-    if points32.device.is_cpu:
-        morton_order(points32, keys, order)
+    if leaf != 0:
+        if s + 1 < tree.leaf_starts[leaf - tree.first_leaf + 1]:
+            return leaf, s + 1
+        leaf = leaf_within(tree, p, radius_sq, next_after(leaf))
     else:
-        launch_in_chunks(_identity_kernel, 1, points32.shape[0], [], [order])
+        leaf = leaf_within(tree, p, radius_sq, 1)
+    if leaf == 0:
+        return 0, 0
+    return leaf, tree.leaf_starts[leaf - tree.first_leaf]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -218,13 +145,9 @@ def _centroid_kernel(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=
 
 @wp.kernel
 def _gather_kernel(
-    vertices: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    sorted_faces: wp.array(dtype=wp.int32),
-    offset: wp.int32,
-    faces: wp.array(dtype=wp.int32),
-    corners: wp.array(dtype=wp.vec3),
-):
+    vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), sorted_faces: wp.array(dtype=wp.int32), offset: wp.int32,
+    faces: wp.array(dtype=wp.int32), corners: wp.array(dtype=wp.vec3),
+):  # fmt: skip
     _, t = wp.tid()
     s = t + offset
     f = sorted_faces[s]
@@ -252,13 +175,9 @@ def _normal_frame(normal: wp.vec3):
 
 @wp.kernel
 def _node_kernel(
-    corners: wp.array(dtype=wp.vec3),
-    num_faces: wp.int64,
-    levels: wp.int32,
-    offset: wp.int32,
-    nodes: wp.array(dtype=wp.mat44),
+    corners: wp.array(dtype=wp.vec3), num_faces: wp.int64, levels: wp.int32, offset: wp.int32, nodes: wp.array(dtype=wp.mat44),
     leaf_starts: wp.array(dtype=wp.int32),
-):
+):  # fmt: skip
     """The box of node ``n = t + offset + 1`` over its range of sorted faces."""
     _, t = wp.tid()
     n = t + offset + 1

@@ -19,24 +19,19 @@ coordinates ``alpha_k = a.e / |e|^2``, ``alpha_l = (b + e).e / |e|^2`` of the op
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
-from ._energy import finite3, flat_vectors, kernel_indices, launch
-from ._kernels import WARP_SCALAR
-from ._kernels import warp as wp
+from . import _energy
+from ._energy import Coordinates, PerItem, Topology, finite3
+from ._search import max_abs
+from ._wrap import scalars, vectors
+from ._wrap import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
 __all__ = ["surface_bending_terms"]
-
-
-@wp.func
-def _max_abs(v: Any):
-    return wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2]))
 
 
 @wp.func
@@ -47,7 +42,7 @@ def _hinge_vectors(points: wp.array(dtype=Any), base: int, i: int, j: int, k: in
     e = xj - xi
     a = points[base + k] - xi
     b = points[base + l] - xj
-    s = wp.max(wp.max(_max_abs(e), _max_abs(a)), _max_abs(b))
+    s = wp.max(wp.max(max_abs(e), max_abs(a)), max_abs(b))
     if not (s > type(s)(0.0)):
         s = type(s)(1.0)
     return e / s, a / s, b / s, s
@@ -116,19 +111,11 @@ def _dihedral_gradient(e: Any, a: Any, c: Any, n_left: Any, n_right: Any):
 
 @wp.kernel
 def _forward_kernel(
-    points: wp.array(dtype=Any),
-    reference: wp.array(dtype=Any),
-    hinges: wp.array2d(dtype=wp.int32),
-    num_points: int,
-    offset: int,
-    energy: wp.array(dtype=Any),
-):
+    points: Coordinates, reference: Coordinates, hinges: Topology, num_points: int, offset: int, energy: PerItem,
+):  # fmt: skip
     b, t = wp.tid()
     h = t + offset
-    num_hinges = hinges.shape[0]
-    if h >= num_hinges:
-        return
-    out = b * num_hinges + h
+    out = b * hinges.shape[0] + h
     valid, i, j, k, l, e, a, c, s, n_left, n_right, e0, a0, c0, s0, n0_left, n0_right = _state(points, reference, hinges, b, h, num_points)
     if not valid:
         energy[out] = energy.dtype(wp.nan)
@@ -139,24 +126,15 @@ def _forward_kernel(
 
 @wp.kernel
 def _adjoint_kernel(
-    points: wp.array(dtype=Any),
-    reference: wp.array(dtype=Any),
-    hinges: wp.array2d(dtype=wp.int32),
-    energy_bar: wp.array(dtype=Any),
-    num_points: int,
-    offset: int,
-    points_bar: wp.array(dtype=Any),
-    reference_bar: wp.array(dtype=Any),
-):
+    points: Coordinates, reference: Coordinates, hinges: Topology, energy_bar: PerItem, num_points: int, offset: int,
+    points_bar: Coordinates, reference_bar: Coordinates,
+):  # fmt: skip
     b, t = wp.tid()
     h = t + offset
-    num_hinges = hinges.shape[0]
-    if h >= num_hinges:
-        return
     valid, i, j, k, l, e, a, c, s, n_left, n_right, e0, a0, c0, s0, n0_left, n0_right = _state(points, reference, hinges, b, h, num_points)
     if not valid:
         return
-    g = energy_bar[b * num_hinges + h]
+    g = energy_bar[b * hinges.shape[0] + h]
     stiffness = _stiffness(e0, n0_left, n0_right)
     delta = _wrapped_difference(_dihedral(e, n_left, n_right), _dihedral(e0, n0_left, n0_right))
     g_theta = g * stiffness * delta
@@ -188,38 +166,14 @@ def _adjoint_kernel(
     wp.atomic_add(reference_bar, base + l, scale * g_l + g_stiffness * d_c)
 
 
-@functools.cache
-def _callables(dtype):
-    """``(forward, adjoint)`` JAX callables for one float dtype."""
-    scalar = WARP_SCALAR[jnp.dtype(dtype)]
-    vectors = wp.array(dtype=wp.types.vector(3, scalar))
-    reals = wp.array(dtype=scalar)
-    hinges_type = wp.array2d(dtype=wp.int32)
-    forward_kernel = wp.overload(_forward_kernel, [vectors, vectors, hinges_type, int, int, reals])
-    adjoint_kernel = wp.overload(_adjoint_kernel, [vectors, vectors, hinges_type, reals, int, int, vectors, vectors])
-
-    def forward(points, reference, hinges, energy):
-        num_batch = energy.shape[0] // hinges.shape[0]
-        num_points = points.shape[0] // num_batch
-        launch(forward_kernel, num_batch, hinges.shape[0], [points, reference, hinges, num_points], [energy])
-
-    def adjoint(points, reference, hinges, energy_bar, points_bar, reference_bar):
-        num_batch = energy_bar.shape[0] // hinges.shape[0]
-        num_points = points.shape[0] // num_batch
-        inputs = [points, reference, hinges, energy_bar, num_points]
-        launch(adjoint_kernel, num_batch, hinges.shape[0], inputs, [points_bar, reference_bar], accumulated=(0, 1))
-
-    forward.__annotations__ = dict(points=vectors, reference=vectors, hinges=hinges_type, energy=reals)
-    adjoint.__annotations__ = dict(points=vectors, reference=vectors, hinges=hinges_type, energy_bar=reals, points_bar=vectors, reference_bar=vectors)
-    return (
-        wp.jax_callable(forward, num_outputs=1, vmap_method="sequential"),
-        wp.jax_callable(adjoint, num_outputs=2, vmap_method="sequential"),
-    )
+def _types(s):
+    return {name: vectors(s) for name in ("points", "reference", *_energy.GRADIENT_NAMES)} | {"energy": scalars(s), "energy_bar": scalars(s)}
 
 
-# Register both overloads now: a new overload after the module is built forces a rebuild.
-for _dtype in WARP_SCALAR:
-    _callables(_dtype)
+_terms = _energy.per_item_terms(
+    _energy.energy_family(_forward_kernel, _types, outputs=("energy",)),
+    _energy.energy_family(_adjoint_kernel, _types, outputs=_energy.GRADIENT_NAMES, accumulate=_energy.GRADIENT_NAMES),
+)
 
 
 @jax.jit
@@ -231,28 +185,6 @@ def surface_bending_terms(points: jax.Array, reference_points: jax.Array, hinges
     reverse mode in both coordinate arrays; ``jit`` and ``vmap`` (sequential) compatible.
     Requires ``B, N, H > 0``.
     """
-    num_batch, num_points, _ = points.shape
-    energy = _energy(flat_vectors(points), flat_vectors(reference_points), kernel_indices(hinges, num_points), num_batch)
+    num_batch = points.shape[0]
+    (energy,) = _terms(*_energy.kernel_inputs(points, reference_points, hinges), (), num_batch, ())
     return energy.reshape(num_batch, -1)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
-def _energy(points, reference, hinges, num_batch):
-    return _energy_fwd(points, reference, hinges, num_batch)[0]
-
-
-def _energy_fwd(points, reference, hinges, num_batch):
-    forward, _ = _callables(points.dtype)
-    (energy,) = forward(points, reference, hinges, output_dims={"energy": (num_batch * hinges.shape[0],)})
-    return energy, (points, reference, hinges)
-
-
-def _energy_bwd(num_batch, residuals, energy_bar):
-    points, reference, hinges = residuals
-    _, adjoint = _callables(points.dtype)
-    dims = {"points_bar": points.shape[:1], "reference_bar": points.shape[:1]}
-    points_bar, reference_bar = adjoint(points, reference, hinges, energy_bar, output_dims=dims)
-    return points_bar, reference_bar, None
-
-
-_energy.defvjp(_energy_fwd, _energy_bwd)

@@ -6,20 +6,20 @@ point builds per-axis basis tables (weights and their derivatives for at most
 ``MAX_AXIS_NODES`` supporting nodes per axis), then loops over the tensor product of the
 supporting nodes. Missing axes (``D < 3``) are padded with one node of weight one.
 
-Kernels: a forward kernel writing the field (zero outside the box), a lattice adjoint that
-scatters ``w * g`` into a zeroed buffer with atomics, and a point adjoint written per point.
+Kernels: the lattice map (the field, zero outside the box) and its transpose in one kernel (the
+lattice adjoint, which scatters ``w * g`` into a zeroed buffer with atomics), and a point
+adjoint written per point.
 """
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import jax
 import jax.numpy as jnp
-import warp as wp
 
-from ._kernels import KernelFamily
+from ._wrap import KernelFamily, with_adjoint
+from ._wrap import warp as wp
 
 __all__ = ["free_form_deform_field", "MAX_AXIS_NODES", "BASIS_CODES"]
 
@@ -27,6 +27,10 @@ __all__ = ["free_form_deform_field", "MAX_AXIS_NODES", "BASIS_CODES"]
 MAX_AXIS_NODES = 32
 BASIS_CODES = {"bernstein": 0, "bspline": 1, "linear": 2, "cubic_hermite": 3, "quintic_hermite": 4}
 _TABLE = wp.constant(MAX_AXIS_NODES)
+
+# The kernels' argument types (float types resolved per overload).
+Batched = wp.array3d(dtype=Any)  # (B, N, D) points and fields, (B, nodes, D) lattices
+PerDesign = wp.array2d(dtype=Any)  # (B, D) box corners and edge lengths
 
 
 @wp.func
@@ -100,16 +104,9 @@ def _axis_basis(kind: int, n: int, u: Any, table: Any):
 
 @wp.func
 def _point_tables(
-    points: wp.array3d(dtype=Any),
-    origin: wp.array2d(dtype=Any),
-    extent: wp.array2d(dtype=Any),
-    kind: int,
-    n0: int,
-    n1: int,
-    n2: int,
-    b: int,
-    q: int,
-):
+    points: wp.array3d(dtype=Any), origin: wp.array2d(dtype=Any), extent: wp.array2d(dtype=Any), kind: int, n0: int, n1: int,
+    n2: int, b: int, q: int,
+):  # fmt: skip
     """Whether point ``(b, q)`` is inside the box, and its per-axis basis tables."""
     num_dims = points.shape[2]
     zero = points.dtype(0.0)
@@ -145,24 +142,33 @@ def _point_tables(
     return inside, weights, slopes, start, count
 
 
+@wp.func
+def _row_vector(values: wp.array3d(dtype=Any), b: int, i: int, num_dims: int):
+    """Row ``values[b, i]`` as a 3-vector (missing components zero)."""
+    v = wp.vector(length=3, dtype=values.dtype)
+    for d in range(num_dims):
+        v[d] = values[b, i, d]
+    return v
+
+
 @wp.kernel
-def _ffd_forward_kernel(
-    points: wp.array3d(dtype=Any),
-    lattice: wp.array3d(dtype=Any),
-    origin: wp.array2d(dtype=Any),
-    extent: wp.array2d(dtype=Any),
-    kind: int,
-    n0: int,
-    n1: int,
-    n2: int,
-    field: wp.array3d(dtype=Any),
-):
+def _ffd_kernel(
+    points: Batched, values: Batched, origin: PerDesign, extent: PerDesign, kind: int, n0: int, n1: int, n2: int, transpose: int,
+    out: Batched,
+):  # fmt: skip
+    """The lattice map at point ``(b, q)`` and its transpose, which the lattice adjoint is.
+
+    ``transpose == 0``: ``out[b, q] = sum_node w_node values[b, node]`` (the field from the
+    lattice; zero outside the box). ``transpose == 1``: ``out[b, node] += w_node values[b, q]``
+    (the lattice cotangent from the field's, scattered with atomics into a zeroed buffer).
+    """
     b, q = wp.tid()
     num_dims = points.shape[2]
     inside, weights, slopes, start, count = _point_tables(points, origin, extent, kind, n0, n1, n2, b, q)
-    a0 = points.dtype(0.0)
-    a1 = points.dtype(0.0)
-    a2 = points.dtype(0.0)
+    field = wp.vector(length=3, dtype=points.dtype)
+    g = wp.vector(length=3, dtype=points.dtype)
+    if inside and transpose != 0:
+        g = _row_vector(values, b, q, num_dims)
     if inside:
         for j0 in range(count[0]):
             w0 = weights[0, j0]
@@ -171,84 +177,27 @@ def _ffd_forward_kernel(
                 row = ((start[0] + j0) * n1 + start[1] + j1) * n2 + start[2]
                 for j2 in range(count[2]):
                     w = w01 * weights[2, j2]
-                    node = row + j2
-                    a0 += w * lattice[b, node, 0]
-                    if num_dims > 1:
-                        a1 += w * lattice[b, node, 1]
-                    if num_dims > 2:
-                        a2 += w * lattice[b, node, 2]
-    field[b, q, 0] = a0
-    if num_dims > 1:
-        field[b, q, 1] = a1
-    if num_dims > 2:
-        field[b, q, 2] = a2
-
-
-@wp.kernel
-def _ffd_lattice_adjoint_kernel(
-    points: wp.array3d(dtype=Any),
-    origin: wp.array2d(dtype=Any),
-    extent: wp.array2d(dtype=Any),
-    field_adj: wp.array3d(dtype=Any),
-    kind: int,
-    n0: int,
-    n1: int,
-    n2: int,
-    lattice_adj: wp.array3d(dtype=Any),
-):
-    b, q = wp.tid()
-    num_dims = points.shape[2]
-    inside, weights, slopes, start, count = _point_tables(points, origin, extent, kind, n0, n1, n2, b, q)
-    if inside:
-        g0 = field_adj[b, q, 0]
-        g1 = points.dtype(0.0)
-        g2 = points.dtype(0.0)
-        if num_dims > 1:
-            g1 = field_adj[b, q, 1]
-        if num_dims > 2:
-            g2 = field_adj[b, q, 2]
-        for j0 in range(count[0]):
-            w0 = weights[0, j0]
-            for j1 in range(count[1]):
-                w01 = w0 * weights[1, j1]
-                row = ((start[0] + j0) * n1 + start[1] + j1) * n2 + start[2]
-                for j2 in range(count[2]):
-                    w = w01 * weights[2, j2]
-                    node = row + j2
-                    wp.atomic_add(lattice_adj, b, node, 0, w * g0)
-                    if num_dims > 1:
-                        wp.atomic_add(lattice_adj, b, node, 1, w * g1)
-                    if num_dims > 2:
-                        wp.atomic_add(lattice_adj, b, node, 2, w * g2)
+                    if transpose == 0:
+                        field += w * _row_vector(values, b, row + j2, num_dims)
+                    else:
+                        for d in range(num_dims):
+                            wp.atomic_add(out, b, row + j2, d, w * g[d])
+    if transpose == 0:
+        for d in range(num_dims):
+            out[b, q, d] = field[d]
 
 
 @wp.kernel
 def _ffd_point_adjoint_kernel(
-    points: wp.array3d(dtype=Any),
-    lattice: wp.array3d(dtype=Any),
-    origin: wp.array2d(dtype=Any),
-    extent: wp.array2d(dtype=Any),
-    field_adj: wp.array3d(dtype=Any),
-    kind: int,
-    n0: int,
-    n1: int,
-    n2: int,
-    points_adj: wp.array3d(dtype=Any),
-):
+    points: Batched, lattice: Batched, origin: PerDesign, extent: PerDesign, field_adj: Batched, kind: int, n0: int, n1: int,
+    n2: int, points_adj: Batched,
+):  # fmt: skip
     b, q = wp.tid()
     num_dims = points.shape[2]
     inside, weights, slopes, start, count = _point_tables(points, origin, extent, kind, n0, n1, n2, b, q)
-    s0 = points.dtype(0.0)
-    s1 = points.dtype(0.0)
-    s2 = points.dtype(0.0)
+    gradient = wp.vector(length=3, dtype=points.dtype)
     if inside:
-        g0 = field_adj[b, q, 0]
-        g1 = points.dtype(0.0)
-        g2 = points.dtype(0.0)
-        if num_dims > 1:
-            g1 = field_adj[b, q, 1]
-        if num_dims > 2:
-            g2 = field_adj[b, q, 2]
+        g = _row_vector(field_adj, b, q, num_dims)
         for j0 in range(count[0]):
             w0 = weights[0, j0]
             dw0 = slopes[0, j0]
@@ -258,42 +207,22 @@ def _ffd_point_adjoint_kernel(
                 row = ((start[0] + j0) * n1 + start[1] + j1) * n2 + start[2]
                 for j2 in range(count[2]):
                     w2 = weights[2, j2]
-                    node = row + j2
                     # cotangent . lattice value at this node
-                    value = g0 * lattice[b, node, 0]
-                    if num_dims > 1:
-                        value += g1 * lattice[b, node, 1]
-                    if num_dims > 2:
-                        value += g2 * lattice[b, node, 2]
-                    s0 += dw0 * w1 * w2 * value
-                    s1 += w0 * dw1 * w2 * value
-                    s2 += w0 * w1 * slopes[2, j2] * value
-    points_adj[b, q, 0] = s0 / extent[b, 0]
-    if num_dims > 1:
-        points_adj[b, q, 1] = s1 / extent[b, 1]
-    if num_dims > 2:
-        points_adj[b, q, 2] = s2 / extent[b, 2]
+                    value = wp.dot(g, _row_vector(lattice, b, row + j2, num_dims))
+                    gradient += value * wp.vector(dw0 * w1 * w2, w0 * dw1 * w2, w0 * w1 * slopes[2, j2])
+    for d in range(num_dims):
+        points_adj[b, q, d] = gradient[d] / extent[b, d]
 
 
-def _array_types(T, **ndims):
-    return {name: wp.array(dtype=T, ndim=ndim) for name, ndim in ndims.items()}
+def _types(s):
+    arrays = {name: wp.array3d(dtype=s) for name in ("points", "values", "out", "lattice", "field_adj", "points_adj")}
+    return arrays | {"origin": wp.array2d(dtype=s), "extent": wp.array2d(dtype=s)}
 
 
-_SCALARS = {"kind": wp.int32, "n0": wp.int32, "n1": wp.int32, "n2": wp.int32}
-
-_forward = KernelFamily(
-    _ffd_forward_kernel,
-    lambda T: {**_array_types(T, points=3, lattice=3, origin=2, extent=2, field=3), **_SCALARS},
-)
-_lattice_adjoint = KernelFamily(
-    _ffd_lattice_adjoint_kernel,
-    lambda T: {**_array_types(T, points=3, origin=2, extent=2, field_adj=3, lattice_adj=3), **_SCALARS},
-    in_out_argnames=["lattice_adj"],
-)
-_point_adjoint = KernelFamily(
-    _ffd_point_adjoint_kernel,
-    lambda T: {**_array_types(T, points=3, lattice=3, origin=2, extent=2, field_adj=3, points_adj=3), **_SCALARS},
-)
+# Every overload is registered now, so the module is built (and cached) once.
+_lattice_map = KernelFamily(_ffd_kernel, _types, outputs=("out",))
+_lattice_map_transpose = KernelFamily(_ffd_kernel, _types, outputs=("out",), accumulate=("out",))
+_point_adjoint = KernelFamily(_ffd_point_adjoint_kernel, _types, outputs=("points_adj",))
 
 
 def _static(lattice_shape: tuple[int, ...], basis: str) -> tuple[int, int, int, int]:
@@ -306,67 +235,31 @@ def _flat(lattice: jax.Array) -> jax.Array:
     return lattice.reshape(lattice.shape[0], -1, lattice.shape[-1])
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
-def _field(points, lattice, origin, extent, basis):
-    return _field_forward(points, lattice, origin, extent, basis)
-
-
 def _field_forward(points, lattice, origin, extent, basis):
-    num_batch, num_points, num_dims = points.shape
+    num_batch, num_points = points.shape[:2]
     if num_batch * num_points == 0:
-        return jnp.zeros_like(points)
-    (field,) = _forward(points.dtype)(
-        points,
-        _flat(lattice),
-        origin,
-        extent,
-        *_static(lattice.shape, basis),
-        launch_dims=(num_batch, num_points),
-        output_dims={"field": (num_batch, num_points, num_dims)},
-    )
-    return field
+        return jnp.zeros_like(points), ()
+    static, launch = _static(lattice.shape, basis), (num_batch, num_points)
+    (field,) = _lattice_map(points.dtype)(points, _flat(lattice), origin, extent, *static, 0, launch=launch, shapes={"out": points.shape})
+    return field, ()
 
 
-def _field_fwd(points, lattice, origin, extent, basis):
-    return _field_forward(points, lattice, origin, extent, basis), (points, lattice, origin, extent)
-
-
-def _field_bwd(basis, residuals, field_adj):
-    points, lattice, origin, extent = residuals
-    num_batch, num_points, num_dims = points.shape
+def _field_adjoint(args, saved, field_adj):
+    points, lattice, origin, extent, basis = args
+    num_batch, num_points = points.shape[:2]
     if num_batch * num_points == 0:
-        return jnp.zeros_like(points), jnp.zeros_like(lattice), jnp.zeros_like(origin), jnp.zeros_like(extent)
-    static = _static(lattice.shape, basis)
-    flat = _flat(lattice)
-    (lattice_adj,) = _lattice_adjoint(points.dtype)(
-        points,
-        origin,
-        extent,
-        field_adj,
-        *static,
-        jnp.zeros_like(flat),
-        launch_dims=(num_batch, num_points),
-    )
-    (points_adj,) = _point_adjoint(points.dtype)(
-        points,
-        flat,
-        origin,
-        extent,
-        field_adj,
-        *static,
-        launch_dims=(num_batch, num_points),
-        output_dims={"points_adj": (num_batch, num_points, num_dims)},
-    )
-    # origin and extent are configuration (stopped upstream): zero cotangents.
-    return points_adj, lattice_adj.reshape(lattice.shape), jnp.zeros_like(origin), jnp.zeros_like(extent)
+        return jnp.zeros_like(points), jnp.zeros_like(lattice)
+    static, flat, launch = _static(lattice.shape, basis), _flat(lattice), (num_batch, num_points)
+    (lattice_adj,) = _lattice_map_transpose(points.dtype)(points, field_adj, origin, extent, *static, 1, launch=launch, shapes={"out": flat.shape})
+    (points_adj,) = _point_adjoint(points.dtype)(points, flat, origin, extent, field_adj, *static, launch=launch, shapes={"points_adj": points.shape})
+    return points_adj, lattice_adj.reshape(lattice.shape)
 
 
-_field.defvjp(_field_fwd, _field_bwd)
+# origin and extent are configuration (stopped upstream): zero cotangents.
+_field = with_adjoint(_field_forward, _field_adjoint, static_argnums=(4,), constant_argnums=(2, 3))
 
 
-def free_form_deform_field(
-    points: jax.Array, lattice: jax.Array, origin: jax.Array, extent: jax.Array, *, basis: str
-) -> jax.Array:
+def free_form_deform_field(points: jax.Array, lattice: jax.Array, origin: jax.Array, extent: jax.Array, *, basis: str) -> jax.Array:
     """FFD displacement field ``(B, N, D)``: zero outside the box ``[origin, origin + extent]``.
 
     Args:
@@ -379,10 +272,3 @@ def free_form_deform_field(
     ``jit`` and ``vmap`` (sequential) compatible.
     """
     return _field(points, lattice, origin, extent, basis)
-
-# Register every overload now so the module is built (and cached) once with one hash, instead of
-# being rebuilt each time a new dtype or kernel is first used.
-for _family in (_forward, _lattice_adjoint, _point_adjoint):
-    for _dtype in (jnp.float32, jnp.float64):
-        _family(_dtype)
-del _family, _dtype

@@ -14,26 +14,14 @@ is zero at an exact collapse like the JAX path's safe norm.
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
-from ._energy import (
-    cell_edges,
-    factorial,
-    finite,
-    finite3,
-    flat_vectors,
-    gram_schmidt,
-    kernel_indices,
-    launch,
-    scatter_edge_gradients,
-    sorted_cell,
-)
-from ._kernels import WARP_SCALAR
-from ._kernels import warp as wp
+from . import _energy
+from ._energy import Coordinates, PerItem, Topology, factorial, finite, gram_schmidt, load_cell, scatter_edge_gradients
+from ._wrap import scalars, vectors
+from ._wrap import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
@@ -87,85 +75,45 @@ def _measure_gradient(e0: Any, e1: Any, e2: Any, m: int, num_dims: int):
 
 
 @wp.func
-def _load(points: wp.array(dtype=Any), reference: wp.array(dtype=Any), cells: wp.array2d(dtype=wp.int32), b: int, c: int, num_points: int):
-    """Sorted vertices, both edge sets and whether the cell is usable (indices, finiteness)."""
-    m = cells.shape[1] - 1
-    v, in_range = sorted_cell(cells, c, num_points)
-    zero = points[0] - points[0]
-    e0 = zero
-    e1 = zero
-    e2 = zero
-    a0 = zero
-    a1 = zero
-    a2 = zero
-    usable = False
-    if in_range:
-        base = b * num_points
-        e0, e1, e2 = cell_edges(points, base, v, m)
-        a0, a1, a2 = cell_edges(reference, base, v, m)
-        usable = finite3(e0, e1, e2) and finite3(a0, a1, a2)
-    return v, usable, e0, e1, e2, a0, a1, a2
+def _cell(points: Coordinates, reference: Coordinates, cells: Topology, b: int, c: int, num_points: int, num_dims: int):
+    """The cell's state (``load_cell``) and reference measure; valid when usable with a finite, nonzero reference."""
+    v, usable, e0, e1, e2, a0, a1, a2 = load_cell(points, reference, cells, b, c, num_points)
+    rest = e0[0] - e0[0]
+    if usable:
+        rest = _measure(a0, a1, a2, cells.shape[1] - 1, num_dims)
+    valid = usable and rest != type(rest)(0.0) and finite(rest)
+    return valid, v, e0, e1, e2, a0, a1, a2, rest
 
 
 @wp.kernel
 def _forward_kernel(
-    points: wp.array(dtype=Any),
-    reference: wp.array(dtype=Any),
-    cells: wp.array2d(dtype=wp.int32),
-    num_points: int,
-    num_dims: int,
-    offset: int,
-    measure: wp.array(dtype=Any),
-    reference_measure: wp.array(dtype=Any),
-):
+    points: Coordinates, reference: Coordinates, cells: Topology, num_points: int, num_dims: int, offset: int, measure: PerItem,
+    reference_measure: PerItem,
+):  # fmt: skip
     b, t = wp.tid()
     c = t + offset
-    num_cells = cells.shape[0]
-    if c >= num_cells:
-        return
-    out = b * num_cells + c
-    m = cells.shape[1] - 1
-    nan = measure.dtype(wp.nan)
-    v, usable, e0, e1, e2, a0, a1, a2 = _load(points, reference, cells, b, c, num_points)
-    if not usable:
-        measure[out] = nan
-        reference_measure[out] = nan
-        return
-    rest = _measure(a0, a1, a2, m, num_dims)
-    if rest == measure.dtype(0.0) or not finite(rest):
-        measure[out] = nan
-        reference_measure[out] = nan
-        return
-    measure[out] = _measure(e0, e1, e2, m, num_dims)
-    reference_measure[out] = rest
+    out = b * cells.shape[0] + c
+    valid, v, e0, e1, e2, a0, a1, a2, rest = _cell(points, reference, cells, b, c, num_points, num_dims)
+    if valid:
+        measure[out] = _measure(e0, e1, e2, cells.shape[1] - 1, num_dims)
+        reference_measure[out] = rest
+    else:
+        measure[out] = measure.dtype(wp.nan)
+        reference_measure[out] = measure.dtype(wp.nan)
 
 
 @wp.kernel
 def _adjoint_kernel(
-    points: wp.array(dtype=Any),
-    reference: wp.array(dtype=Any),
-    cells: wp.array2d(dtype=wp.int32),
-    measure_bar: wp.array(dtype=Any),
-    reference_measure_bar: wp.array(dtype=Any),
-    num_points: int,
-    num_dims: int,
-    offset: int,
-    points_bar: wp.array(dtype=Any),
-    reference_bar: wp.array(dtype=Any),
-):
+    points: Coordinates, reference: Coordinates, cells: Topology, measure_bar: PerItem, reference_measure_bar: PerItem,
+    num_points: int, num_dims: int, offset: int, points_bar: Coordinates, reference_bar: Coordinates,
+):  # fmt: skip
     b, t = wp.tid()
     c = t + offset
-    num_cells = cells.shape[0]
-    if c >= num_cells:
+    out = b * cells.shape[0] + c
+    valid, v, e0, e1, e2, a0, a1, a2, rest = _cell(points, reference, cells, b, c, num_points, num_dims)
+    if not valid:
         return
-    out = b * num_cells + c
     m = cells.shape[1] - 1
-    v, usable, e0, e1, e2, a0, a1, a2 = _load(points, reference, cells, b, c, num_points)
-    if not usable:
-        return
-    rest = _measure(a0, a1, a2, m, num_dims)
-    if rest == measure_bar.dtype(0.0) or not finite(rest):
-        return
     base = b * num_points
     g = measure_bar[out]
     g0, g1, g2 = _measure_gradient(e0, e1, e2, m, num_dims)
@@ -175,41 +123,16 @@ def _adjoint_kernel(
     scatter_edge_gradients(reference_bar, base, v, m, g * g0, g * g1, g * g2)
 
 
-@functools.cache
-def _callables(dtype):
-    """``(forward, adjoint)`` JAX callables for one float dtype."""
-    scalar = WARP_SCALAR[jnp.dtype(dtype)]
-    vectors = wp.array(dtype=wp.types.vector(3, scalar))
-    reals = wp.array(dtype=scalar)
-    cells_type = wp.array2d(dtype=wp.int32)
-    forward_kernel = wp.overload(_forward_kernel, [vectors, vectors, cells_type, int, int, int, reals, reals])
-    adjoint_kernel = wp.overload(_adjoint_kernel, [vectors, vectors, cells_type, reals, reals, int, int, int, vectors, vectors])
-
-    def forward(points, reference, cells, num_dims, measure, reference_measure):
-        num_batch = measure.shape[0] // cells.shape[0]
-        num_points = points.shape[0] // num_batch
-        launch(forward_kernel, num_batch, cells.shape[0], [points, reference, cells, num_points, num_dims], [measure, reference_measure])
-
-    def adjoint(points, reference, cells, measure_bar, reference_measure_bar, num_dims, points_bar, reference_bar):
-        num_batch = measure_bar.shape[0] // cells.shape[0]
-        num_points = points.shape[0] // num_batch
-        inputs = [points, reference, cells, measure_bar, reference_measure_bar, num_points, num_dims]
-        launch(adjoint_kernel, num_batch, cells.shape[0], inputs, [points_bar, reference_bar], accumulated=(0, 1))
-
-    forward.__annotations__ = dict(points=vectors, reference=vectors, cells=cells_type, num_dims=int, measure=reals, reference_measure=reals)
-    adjoint.__annotations__ = dict(
-        points=vectors, reference=vectors, cells=cells_type, measure_bar=reals, reference_measure_bar=reals, num_dims=int,
-        points_bar=vectors, reference_bar=vectors,
-    )  # fmt: skip
-    return (
-        wp.jax_callable(forward, num_outputs=2, vmap_method="sequential"),
-        wp.jax_callable(adjoint, num_outputs=2, vmap_method="sequential"),
-    )
+def _types(s):
+    return {name: vectors(s) for name in ("points", "reference", *_energy.GRADIENT_NAMES)} | {
+        name: scalars(s) for name in ("measure", "reference_measure", "measure_bar", "reference_measure_bar")
+    }
 
 
-# Register both overloads now: a new overload after the module is built forces a rebuild.
-for _dtype in WARP_SCALAR:
-    _callables(_dtype)
+_measures = _energy.per_item_terms(
+    _energy.energy_family(_forward_kernel, _types, outputs=("measure", "reference_measure")),
+    _energy.energy_family(_adjoint_kernel, _types, outputs=_energy.GRADIENT_NAMES, accumulate=_energy.GRADIENT_NAMES),
+)
 
 
 @jax.jit
@@ -219,30 +142,6 @@ def simplex_measures(points: jax.Array, reference_points: jax.Array, cells: jax.
     NaN for invalid cells, which pass no gradient back. Differentiable once in reverse mode in
     both coordinate arrays; ``jit`` and ``vmap`` (sequential) compatible. Requires ``B, N, M > 0``.
     """
-    num_batch, num_points, num_dims = points.shape
-    indices = kernel_indices(cells, num_points)
-    measure, reference_measure = _measures(flat_vectors(points), flat_vectors(reference_points), indices, num_batch, num_dims)
+    num_batch, _, num_dims = points.shape
+    measure, reference_measure = _measures(*_energy.kernel_inputs(points, reference_points, cells), (), num_batch, (num_dims,))
     return measure.reshape(num_batch, -1), reference_measure.reshape(num_batch, -1)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4))
-def _measures(points, reference, cells, num_batch, num_dims):
-    return _measures_fwd(points, reference, cells, num_batch, num_dims)[0]
-
-
-def _measures_fwd(points, reference, cells, num_batch, num_dims):
-    forward, _ = _callables(points.dtype)
-    size = (num_batch * cells.shape[0],)
-    outputs = forward(points, reference, cells, num_dims, output_dims={"measure": size, "reference_measure": size})
-    return tuple(outputs), (points, reference, cells)
-
-
-def _measures_bwd(num_batch, num_dims, residuals, cotangents):
-    points, reference, cells = residuals
-    _, adjoint = _callables(points.dtype)
-    dims = {"points_bar": points.shape[:1], "reference_bar": points.shape[:1]}
-    points_bar, reference_bar = adjoint(points, reference, cells, *cotangents, num_dims, output_dims=dims)
-    return points_bar, reference_bar, None
-
-
-_measures.defvjp(_measures_fwd, _measures_bwd)

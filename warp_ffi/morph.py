@@ -11,10 +11,10 @@ Compact support pays: a spatial hash grid, built in plain JAX (so it traces unde
   cells, and clamped from below so cell coordinates fit int32. The grid uses the first three
   coordinates (lower ``D`` is zero-padded to three; higher ``D`` keeps the extra coordinates in
   the distance but not in the grid, which is still exact).
-* Controls are sorted by ``hash(cell) mod T`` (static power-of-two table ``T >= 2C``); bucket
-  ranges come from a histogram and a cumulative sum. Points are sorted by the same key (a
-  serial counting sort in Warp on CPU, ``argsort`` elsewhere), so consecutive points walk the
-  same buckets (a 2x speed-up from cache locality alone).
+* Controls are sorted by ``hash(cell) mod T`` (static power-of-two table ``T >= 2C``), which
+  also gives the bucket ranges. Points are sorted by the same key, so consecutive points walk
+  the same buckets (a 2x speed-up from cache locality alone). Both sorts are
+  ``_grid.counting_sort`` (a serial counting sort in Warp on CPU, ``argsort`` elsewhere).
 * A kernel visits the 27 neighbour cells of its point, skipping those farther than one cell
   width, walks each bucket with a squared-distance pre-test on packed ``(x, y, z, 1 / r^2)`` boxes,
   and skips controls whose stored cell differs from the visited one, so hash collisions never
@@ -33,15 +33,15 @@ sequentially over the batch. Arrays are flattened over the batch (1-D arrays ind
 2-D ones in Warp's CPU code).
 """
 
-import functools
 import math
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from ._kernels import WARP_SCALAR, launch_in_chunks
-from ._kernels import warp as wp
+from ._grid import counting_sort
+from ._wrap import KernelFamily, scalars, vectors, with_adjoint
+from ._wrap import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
@@ -135,15 +135,28 @@ def _classify(diff: Any, r: Any, inv_r2: Any):
 
 
 @wp.func
-def _classify_candidate(x: Any, controls: wp.array(dtype=Any), radius: wp.array(dtype=Any), j: int, inv_r2: Any, dist2: Any):
-    """``_classify`` for control ``j``, reusing the pre-test's squared distance when ``D = 3``."""
+def _classify_candidate(x: Any, controls: wp.array(dtype=Any), radius: wp.array(dtype=Any), boxes: wp.array(dtype=Any), j: int):
+    """``_classify`` for control ``j`` once it passes the box pre-test (else status 0), and its ``1 / r^2``.
+
+    The pre-test's squared distance is reused when ``D = 3``.
+    """
+    box = boxes[j]
+    e0 = x[0] - box[0]
+    e1 = x[1] - box[1]
+    e2 = x[2] - box[2]
+    dist2 = e0 * e0 + e1 * e1 + e2 * e2
+    inv_r2 = box[3]
+    two = type(dist2)(2.0)
+    if not (dist2 * inv_r2 <= type(dist2)(1.0) + type(dist2)(REJECT_SLACK)):
+        return int(0), two, False, inv_r2
     if len(x) == 3:
         q2 = dist2 * inv_r2
         if inv_r2 > type(dist2)(0.0) and dist2 >= type(dist2)(FAST_MIN_DIST2) and q2 >= type(dist2)(FAST_MIN_DIST2):
             if q2 < type(dist2)(1.0):
-                return int(1), wp.sqrt(q2), True
-            return int(0), type(dist2)(2.0), True
-    return _classify(x - controls[j], radius[j], inv_r2)
+                return int(1), wp.sqrt(q2), True, inv_r2
+            return int(0), two, True, inv_r2
+    status, q, fast = _classify(x - controls[j], radius[j], inv_r2)
+    return status, q, fast, inv_r2
 
 
 @wp.func
@@ -199,31 +212,41 @@ def _neighbour_bucket(blocks: wp.vec3i, residues: wp.vec3i, neighbour: int, mask
     return wp.int32((_block_hash(bx, by, bz) << wp.uint32(5)) & mask) + rx + 3 * ry + 9 * rz
 
 
+@wp.func
+def _grid_position(x: Any, cell: wp.vec3i, scale: Any):
+    """Where point ``x`` sits in its cell ``cell``: per-axis fractions (see ``_cell_fraction``),
+    and the cell's 3x3x3 block and residue (see ``_neighbour_bucket``)."""
+    f0 = _cell_fraction(x[0], scale[0], cell[0], scale[1])
+    f1 = _cell_fraction(x[1], scale[0], cell[1], scale[1])
+    f2 = _cell_fraction(x[2], scale[0], cell[2], scale[1])
+    bx, rx = _split(cell[0])
+    by, ry = _split(cell[1])
+    bz, rz = _split(cell[2])
+    return f0, f1, f2, wp.vec3i(bx, by, bz), wp.vec3i(rx, ry, rz)
+
+
+@wp.func
+def _neighbour_controls(
+    bucket_offsets: wp.array(dtype=wp.int32), blocks: wp.vec3i, residues: wp.vec3i, neighbour: int, table_size: int, b: int,
+    f0: Any, f1: Any, f2: Any,
+):  # fmt: skip
+    """The range of sorted controls in neighbour cell ``neighbour`` (empty when out of reach)."""
+    if _skip_cell(neighbour, f0, f1, f2):
+        return int(0), int(0)
+    key = b * (table_size + 1) + _neighbour_bucket(blocks, residues, neighbour, wp.uint32(table_size - 1))
+    return bucket_offsets[key], bucket_offsets[key + 1]
+
+
 @wp.kernel
 def _forward_kernel(
-    points: wp.array(dtype=Any),
-    point_cells: wp.array(dtype=wp.vec3i),
-    controls: wp.array(dtype=Any),
-    displacements: wp.array(dtype=Any),
-    radius: wp.array(dtype=Any),
-    boxes: wp.array(dtype=Any),
-    bucket_offsets: wp.array(dtype=wp.int32),
-    grid_scale: wp.array(dtype=Any),
-    num_points: wp.int32,
-    table_size: wp.int32,
-    offset: wp.int32,
-    field: wp.array(dtype=Any),
-    ref_index: wp.array(dtype=wp.int32),
-    ref_q: wp.array(dtype=Any),
-    denominator: wp.array(dtype=Any),
-    coincident_count: wp.array(dtype=wp.int32),
-    correction: wp.array(dtype=Any),
-):
+    points: wp.array(dtype=Any), point_cells: wp.array(dtype=wp.vec3i), controls: wp.array(dtype=Any),
+    displacements: wp.array(dtype=Any), radius: wp.array(dtype=Any), boxes: wp.array(dtype=Any),
+    bucket_offsets: wp.array(dtype=wp.int32), grid_scale: wp.array(dtype=Any), num_points: wp.int32, table_size: wp.int32,
+    offset: wp.int32, field: wp.array(dtype=Any), ref_index: wp.array(dtype=wp.int32), ref_q: wp.array(dtype=Any),
+    denominator: wp.array(dtype=Any), coincident_count: wp.array(dtype=wp.int32), correction: wp.array(dtype=Any),
+):  # fmt: skip
     b, t = wp.tid()
-    i = t + offset
-    if i >= num_points:
-        return
-    pi = b * num_points + i
+    pi = b * num_points + t + offset
     x = points[pi]
     zero = field.dtype()
     one = radius.dtype(1.0)
@@ -240,65 +263,39 @@ def _forward_kernel(
     weight_sum = radius.dtype(0.0)
     weighted = zero
 
-    x0 = x[0]
-    x1 = x[1]
-    x2 = x[2]
-    cell = point_cells[pi]
-    scale = grid_scale[b]
-    f0 = _cell_fraction(x0, scale[0], cell[0], scale[1])
-    f1 = _cell_fraction(x1, scale[0], cell[1], scale[1])
-    f2 = _cell_fraction(x2, scale[0], cell[2], scale[1])
-    bx, rx = _split(cell[0])
-    by, ry = _split(cell[1])
-    bz, rz = _split(cell[2])
-    blocks = wp.vec3i(bx, by, bz)
-    residues = wp.vec3i(rx, ry, rz)
-    mask = wp.uint32(table_size - 1)
-    base = b * (table_size + 1)
-    pretest = one + radius.dtype(REJECT_SLACK)
+    f0, f1, f2, blocks, residues = _grid_position(x, point_cells[pi], grid_scale[b])
     for neighbour in range(27):  # one loop: nested 3-loops would be unrolled 27 times
-        if _skip_cell(neighbour, f0, f1, f2):
-            continue
-        key = base + _neighbour_bucket(blocks, residues, neighbour, mask)
-        j = bucket_offsets[key]
-        end = bucket_offsets[key + 1]
-        while j < end:
-            box = boxes[j]
-            e0 = x0 - box[0]
-            e1 = x1 - box[1]
-            e2 = x2 - box[2]
-            dist2 = e0 * e0 + e1 * e1 + e2 * e2
-            if dist2 * box[3] <= pretest:
-                status, q, fast = _classify_candidate(x, controls, radius, j, box[3], dist2)
-                if status == 2:
-                    count += 1
-                    coincident_sum = coincident_sum + displacements[j]
-                elif status == 1 and count == 0:
-                    d = displacements[j]
-                    p = _wendland(q)
-                    if ref < 0:
-                        ref = j
-                        q_ref = q
-                        phi_ref = p
-                        inv_phi_ref = one / p
-                        d_ref = d
-                    elif q < q_ref:
-                        # New reference: the old sums (and the old reference) get weight sigma.
-                        ratio = q / q_ref
-                        sigma = ratio * ratio * phi_ref / p
-                        weighted = sigma * (weighted + (one + weight_sum) * (d_ref - d))
-                        weight_sum = sigma * (one + weight_sum)
-                        ref = j
-                        q_ref = q
-                        phi_ref = p
-                        inv_phi_ref = one / p
-                        d_ref = d
-                    else:
-                        ratio = q_ref / q
-                        w = ratio * ratio * p * inv_phi_ref
-                        weight_sum = weight_sum + w
-                        weighted = weighted + w * (d - d_ref)
-            j += 1
+        start, end = _neighbour_controls(bucket_offsets, blocks, residues, neighbour, table_size, b, f0, f1, f2)
+        for j in range(start, end):
+            status, q, fast, inv_r2 = _classify_candidate(x, controls, radius, boxes, j)
+            if status == 2:
+                count += 1
+                coincident_sum = coincident_sum + displacements[j]
+            elif status == 1 and count == 0:
+                d = displacements[j]
+                p = _wendland(q)
+                if ref < 0:
+                    ref = j
+                    q_ref = q
+                    phi_ref = p
+                    inv_phi_ref = one / p
+                    d_ref = d
+                elif q < q_ref:
+                    # New reference: the old sums (and the old reference) get weight sigma.
+                    ratio = q / q_ref
+                    sigma = ratio * ratio * phi_ref / p
+                    weighted = sigma * (weighted + (one + weight_sum) * (d_ref - d))
+                    weight_sum = sigma * (one + weight_sum)
+                    ref = j
+                    q_ref = q
+                    phi_ref = p
+                    inv_phi_ref = one / p
+                    d_ref = d
+                else:
+                    ratio = q_ref / q
+                    w = ratio * ratio * p * inv_phi_ref
+                    weight_sum = weight_sum + w
+                    weighted = weighted + w * (d - d_ref)
 
     u = zero
     delta = zero
@@ -328,33 +325,16 @@ def _forward_kernel(
 
 @wp.kernel
 def _backward_kernel(
-    points: wp.array(dtype=Any),
-    point_cells: wp.array(dtype=wp.vec3i),
-    controls: wp.array(dtype=Any),
-    displacements: wp.array(dtype=Any),
-    radius: wp.array(dtype=Any),
-    boxes: wp.array(dtype=Any),
-    bucket_offsets: wp.array(dtype=wp.int32),
-    grid_scale: wp.array(dtype=Any),
-    ref_index: wp.array(dtype=wp.int32),
-    ref_q: wp.array(dtype=Any),
-    denominator: wp.array(dtype=Any),
-    coincident_count: wp.array(dtype=wp.int32),
-    correction: wp.array(dtype=Any),
-    field_bar: wp.array(dtype=Any),
-    num_points: wp.int32,
-    table_size: wp.int32,
-    offset: wp.int32,
-    points_bar: wp.array(dtype=Any),
-    controls_bar: wp.array(dtype=Any),
-    displacements_bar: wp.array(dtype=Any),
+    points: wp.array(dtype=Any), point_cells: wp.array(dtype=wp.vec3i), controls: wp.array(dtype=Any),
+    displacements: wp.array(dtype=Any), radius: wp.array(dtype=Any), boxes: wp.array(dtype=Any),
+    bucket_offsets: wp.array(dtype=wp.int32), grid_scale: wp.array(dtype=Any), ref_index: wp.array(dtype=wp.int32),
+    ref_q: wp.array(dtype=Any), denominator: wp.array(dtype=Any), coincident_count: wp.array(dtype=wp.int32),
+    correction: wp.array(dtype=Any), field_bar: wp.array(dtype=Any), num_points: wp.int32, table_size: wp.int32, offset: wp.int32,
+    points_bar: wp.array(dtype=Any), controls_bar: wp.array(dtype=Any), displacements_bar: wp.array(dtype=Any),
     radius_bar: wp.array(dtype=Any),
-):
+):  # fmt: skip
     b, t = wp.tid()
-    i = t + offset
-    if i >= num_points:
-        return
-    pi = b * num_points + i
+    pi = b * num_points + t + offset
     zero = points_bar.dtype()
     one = radius.dtype(1.0)
     count = coincident_count[pi]
@@ -374,183 +354,67 @@ def _backward_kernel(
         if ref >= 0:
             d_ref = displacements[ref]
 
-        x0 = x[0]
-        x1 = x[1]
-        x2 = x[2]
-        cell = point_cells[pi]
-        scale = grid_scale[b]
-        f0 = _cell_fraction(x0, scale[0], cell[0], scale[1])
-        f1 = _cell_fraction(x1, scale[0], cell[1], scale[1])
-        f2 = _cell_fraction(x2, scale[0], cell[2], scale[1])
-        bx, rx = _split(cell[0])
-        by, ry = _split(cell[1])
-        bz, rz = _split(cell[2])
-        blocks = wp.vec3i(bx, by, bz)
-        residues = wp.vec3i(rx, ry, rz)
-        mask = wp.uint32(table_size - 1)
-        base = b * (table_size + 1)
-        pretest = one + radius.dtype(REJECT_SLACK)
+        f0, f1, f2, blocks, residues = _grid_position(x, point_cells[pi], grid_scale[b])
         for neighbour in range(27):
-            if _skip_cell(neighbour, f0, f1, f2):
-                continue
-            key = base + _neighbour_bucket(blocks, residues, neighbour, mask)
-            j = bucket_offsets[key]
-            end = bucket_offsets[key + 1]
-            while j < end:
-                box = boxes[j]
-                e0 = x0 - box[0]
-                e1 = x1 - box[1]
-                e2 = x2 - box[2]
-                dist2 = e0 * e0 + e1 * e1 + e2 * e2
-                if dist2 * box[3] <= pretest:
-                    status, q, fast = _classify_candidate(x, controls, radius, j, box[3], dist2)
-                    if count > 0:
-                        if status == 2:
-                            displacements_bar[j] = displacements_bar[j] + coincident_scale * g
-                    elif status == 1:
-                        diff = x - controls[j]
-                        r = radius[j]
-                        # u = sum a_j d_j / (1 + sum a_j) with a_j = phi_j / q_j^2; scaled by
-                        # b = q_ref^2 / phi_ref: du/dd_j = w_j / den, du/dq_j = (d_j - u) b a'(q_j) / den,
-                        # b a'(q_j) = (q_ref / q_j)^2 (phi'_j - 2 phi_j / q_j) / phi_ref.
-                        d = displacements[j]
-                        # The fast path has q >= 2**-50, so 1 / q is safe there.
-                        inv_q = one
-                        ratio = one
-                        if fast:
-                            inv_q = one / q
-                            ratio = q_ref * inv_q
-                        else:
-                            ratio = q_ref / q
-                        scaled = ratio * ratio * inv_phi_ref
-                        p = _wendland(q)
-                        displacements_bar[j] = displacements_bar[j] + (scaled * p * inv_den) * g
-                        coef = wp.dot(g, (d - d_ref) - delta) * inv_den * scaled
-                        diff_bar = zero
-                        if fast:
-                            q_bar = coef * (_wendland_derivative(q) - radius.dtype(2.0) * p * inv_q)
-                            diff_bar = (q_bar * inv_q * box[3]) * diff
-                            radius_bar[j] = radius_bar[j] - q_bar * q * r * box[3]
-                        else:
-                            q_bar = coef * _wendland_derivative(q) - radius.dtype(2.0) * (coef * p) / q
-                            diff_bar = q_bar * _distance_gradient(diff, r, q)
-                            radius_bar[j] = radius_bar[j] - q_bar * q / r
-                        x_bar = x_bar + diff_bar
-                        controls_bar[j] = controls_bar[j] - diff_bar
-                j += 1
+            start, end = _neighbour_controls(bucket_offsets, blocks, residues, neighbour, table_size, b, f0, f1, f2)
+            for j in range(start, end):
+                status, q, fast, inv_r2 = _classify_candidate(x, controls, radius, boxes, j)
+                if count > 0:
+                    if status == 2:
+                        displacements_bar[j] = displacements_bar[j] + coincident_scale * g
+                elif status == 1:
+                    diff = x - controls[j]
+                    r = radius[j]
+                    # u = sum a_j d_j / (1 + sum a_j) with a_j = phi_j / q_j^2; scaled by
+                    # b = q_ref^2 / phi_ref: du/dd_j = w_j / den, du/dq_j = (d_j - u) b a'(q_j) / den,
+                    # b a'(q_j) = (q_ref / q_j)^2 (phi'_j - 2 phi_j / q_j) / phi_ref.
+                    d = displacements[j]
+                    # The fast path has q >= 2**-50, so 1 / q is safe there.
+                    inv_q = one
+                    ratio = one
+                    if fast:
+                        inv_q = one / q
+                        ratio = q_ref * inv_q
+                    else:
+                        ratio = q_ref / q
+                    scaled = ratio * ratio * inv_phi_ref
+                    p = _wendland(q)
+                    displacements_bar[j] = displacements_bar[j] + (scaled * p * inv_den) * g
+                    coef = wp.dot(g, (d - d_ref) - delta) * inv_den * scaled
+                    diff_bar = zero
+                    if fast:
+                        q_bar = coef * (_wendland_derivative(q) - radius.dtype(2.0) * p * inv_q)
+                        diff_bar = (q_bar * inv_q * inv_r2) * diff
+                        radius_bar[j] = radius_bar[j] - q_bar * q * r * inv_r2
+                    else:
+                        q_bar = coef * _wendland_derivative(q) - radius.dtype(2.0) * (coef * p) / q
+                        diff_bar = q_bar * _distance_gradient(diff, r, q)
+                        radius_bar[j] = radius_bar[j] - q_bar * q / r
+                    x_bar = x_bar + diff_bar
+                    controls_bar[j] = controls_bar[j] - diff_bar
     points_bar[pi] = x_bar
 
 
-@wp.kernel
-def _counting_sort_kernel(
-    keys: wp.array(dtype=wp.int32),
-    num_items: wp.int32,
-    table_size: wp.int32,
-    slots: wp.array(dtype=wp.int32),
-    order: wp.array(dtype=wp.int32),
-):
-    """Stable counting sort of one design's keys in ``[0, table_size)`` (one thread per design)."""
-    b = wp.tid()
-    first_key = b * num_items
-    first_slot = b * table_size
-    for k in range(table_size):
-        slots[first_slot + k] = 0
-    for i in range(num_items):
-        slots[first_slot + keys[first_key + i]] += 1
-    running = int(0)
-    for k in range(table_size):
-        size = slots[first_slot + k]
-        slots[first_slot + k] = running
-        running += size
-    for i in range(num_items):
-        slot = first_slot + keys[first_key + i]
-        position = slots[slot]
-        order[first_key + position] = i
-        slots[slot] = position + 1
-
-
-_counting_sort = wp.jax_kernel(_counting_sort_kernel, num_outputs=2, vmap_method="sequential")
-
-
-def _sort_order(keys: jax.Array, table_size: int) -> jax.Array:
-    """Permutation sorting each row of ``keys`` ``(B, N)`` (stably, values in ``[0, table_size)``).
-
-    On CPU a serial counting sort in Warp is ~20x faster than XLA's comparison sort for a
-    million points; elsewhere ``argsort``.
-    """
-    num_batch, num_items = keys.shape
-    if jax.default_backend() != "cpu":
-        return jnp.argsort(keys, axis=1, stable=True).astype(jnp.int32)
-    _, order = _counting_sort(
-        keys.reshape(-1), num_items, table_size, launch_dims=(num_batch,),
-        output_dims={"slots": (num_batch * table_size,), "order": (num_batch * num_items,)},
-    )  # fmt: skip
-    return order.reshape(num_batch, num_items)
-
-
 # ---------------------------------------------------------------------------------------------
-# Launching: JAX FFI callables whose CPU launches are split over threads (``launch_in_chunks``).
+# Kernel families: CPU launches split over threads (chunked), arrays flattened over the batch.
 
 
-_GRID_NAMES = ("points", "point_cells", "controls", "displacements", "radius", "boxes", "bucket_offsets", "grid_scale")
+def _types(s, dim: int) -> dict:
+    """The Warp types of the kernels' generic arguments for scalar ``s`` and ``D = dim >= 3``."""
+    return {
+        **{name: vectors(s, dim) for name in ("points", "controls", "displacements", "field", "correction", "field_bar")},
+        **{name: vectors(s, dim) for name in ("points_bar", "controls_bar", "displacements_bar")},
+        **{name: scalars(s) for name in ("radius", "ref_q", "denominator", "radius_bar")},
+        "boxes": vectors(s, 4),
+        "grid_scale": vectors(s, 2),
+    }
+
+
 _AUX_NAMES = ("ref_index", "ref_q", "denominator", "coincident_count", "correction")
 _GRAD_NAMES = ("points_bar", "controls_bar", "displacements_bar", "radius_bar")
-
-
-@functools.cache
-def _kernels(dtype, dim: int):
-    """The forward and backward kernel overloads and the FFI argument types for one dtype and ``D``."""
-    scalar = WARP_SCALAR[jnp.dtype(dtype)]
-    vec = wp.array(dtype=wp.types.vector(dim, scalar))
-    real = wp.array(dtype=scalar)
-    ints = wp.array(dtype=wp.int32)
-    cells = wp.array(dtype=wp.vec3i)
-    boxes, scales = wp.array(dtype=wp.types.vector(4, scalar)), wp.array(dtype=wp.types.vector(2, scalar))
-    grid_types = (vec, cells, vec, vec, real, boxes, ints, scales)
-    aux_types = (ints, real, real, ints, vec)
-    grad_types = (vec, vec, vec, real)
-    sizes = (wp.int32, wp.int32, wp.int32)
-    forward_kernel = wp.overload(_forward_kernel, [*grid_types, *sizes, vec, *aux_types])
-    backward_kernel = wp.overload(_backward_kernel, [*grid_types, *aux_types, vec, *sizes, *grad_types])
-    return forward_kernel, backward_kernel, (grid_types, aux_types, grad_types, vec)
-
-
-# Register the common overloads up front: each new overload set recompiles the module (~3 s).
-for _dtype in WARP_SCALAR:
-    _kernels(_dtype, GRID_DIMS)
-
-
-@functools.cache
-def _callables(dtype, dim: int):
-    """``(forward, backward)`` JAX callables for one dtype and vector length ``dim >= 3``."""
-    forward_kernel, backward_kernel, (grid_types, aux_types, grad_types, vec) = _kernels(dtype, dim)
-
-    def launch(kernel, inputs, outputs, accumulated=()):
-        num_batch = inputs[7].shape[0]
-        num_points, table_size = inputs[0].shape[0] // num_batch, inputs[6].shape[0] // num_batch - 1
-        launch_in_chunks(kernel, num_batch, num_points, [*inputs, num_points, table_size], outputs, accumulated)
-
-    def forward(points, point_cells, controls, displacements, radius, boxes, bucket_offsets, grid_scale,
-                field, ref_index, ref_q, denominator, coincident_count, correction):  # fmt: skip
-        inputs = [points, point_cells, controls, displacements, radius, boxes, bucket_offsets, grid_scale]
-        launch(forward_kernel, inputs, [field, ref_index, ref_q, denominator, coincident_count, correction])
-
-    def backward(points, point_cells, controls, displacements, radius, boxes, bucket_offsets, grid_scale,
-                 ref_index, ref_q, denominator, coincident_count, correction, field_bar,
-                 points_bar, controls_bar, displacements_bar, radius_bar):  # fmt: skip
-        inputs = [points, point_cells, controls, displacements, radius, boxes, bucket_offsets, grid_scale,
-                  ref_index, ref_q, denominator, coincident_count, correction, field_bar]  # fmt: skip
-        launch(backward_kernel, inputs, [points_bar, controls_bar, displacements_bar, radius_bar], accumulated=(1, 2, 3))
-
-    forward.__annotations__ = dict(zip((*_GRID_NAMES, "field", *_AUX_NAMES), (*grid_types, vec, *aux_types), strict=True))
-    backward.__annotations__ = dict(
-        zip((*_GRID_NAMES, *_AUX_NAMES, "field_bar", *_GRAD_NAMES), (*grid_types, *aux_types, vec, *grad_types), strict=True)
-    )
-    forward.__module__ = backward.__module__ = __name__
-    return (
-        wp.jax_callable(forward, num_outputs=6, vmap_method="sequential"),
-        wp.jax_callable(backward, num_outputs=4, vmap_method="sequential"),
-    )
+# The common overloads are registered up front: each new overload set recompiles the module (~3 s).
+_forward = KernelFamily(_forward_kernel, _types, outputs=("field", *_AUX_NAMES), chunked=True, variants=((GRID_DIMS,),))
+_backward = KernelFamily(_backward_kernel, _types, outputs=_GRAD_NAMES, accumulate=_GRAD_NAMES[1:], chunked=True, variants=((GRID_DIMS,),))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -610,12 +474,9 @@ def hash_grid(points: jax.Array, controls: jax.Array, radius: jax.Array):
         return c.astype(jnp.int32)
 
     point_cells, control_cells = cells_of(p3), cells_of(c3)
-    control_keys = _bucket_keys(control_cells, table_size)
-    point_order = _sort_order(_bucket_keys(point_cells, table_size), table_size)
-    control_order = jnp.argsort(control_keys, axis=1).astype(jnp.int32)
-    counts = jax.vmap(lambda k: jnp.zeros(table_size, jnp.int32).at[k].add(1))(control_keys)
-    first = jnp.arange(num_batch, dtype=jnp.int32)[:, None] * num_controls
-    offsets = jnp.concatenate([jnp.zeros((num_batch, 1), jnp.int32), jnp.cumsum(counts, axis=1, dtype=jnp.int32)], axis=1) + first
+    _, point_order = counting_sort(_bucket_keys(point_cells, table_size), table_size)
+    control_offsets, control_order = counting_sort(_bucket_keys(control_cells, table_size), table_size)
+    offsets = control_offsets + jnp.arange(num_batch, dtype=jnp.int32)[:, None] * num_controls
 
     r2 = jnp.square(radius)
     usable = jnp.isfinite(r2) & (r2 >= info.tiny * 2.0**24) & (r2 <= info.max / 2)
@@ -658,34 +519,27 @@ def morph_field(points: jax.Array, controls: jax.Array, displacements: jax.Array
 
 
 def _grid_inputs(points, controls, displacements, radius, grid):
+    """The kernels' leading inputs, their sizes ``(N, T)`` and the launch ``(B, N)``."""
     point_cells, boxes, bucket_offsets, grid_scale = grid
-    return (points, point_cells, controls, displacements, radius, boxes, bucket_offsets, grid_scale)
-
-
-@jax.custom_vjp
-def _field(points, controls, displacements, radius, grid):
-    return _field_forward(points, controls, displacements, radius, grid)[0]
+    num_batch = grid_scale.shape[0]
+    num_points, table_size = points.shape[0] // num_batch, bucket_offsets.shape[0] // num_batch - 1
+    inputs = (points, point_cells, controls, displacements, radius, boxes, bucket_offsets, grid_scale)
+    return inputs, (num_points, table_size), (num_batch, num_points)
 
 
 def _field_forward(points, controls, displacements, radius, grid):
-    forward, _ = _callables(points.dtype, points.shape[-1])
-    names = ("field", *_AUX_NAMES)
-    inputs = _grid_inputs(points, controls, displacements, radius, grid)
-    outputs = forward(*inputs, output_dims=dict.fromkeys(names, points.shape[:1]))
-    return outputs[0], outputs[1:]
+    inputs, sizes, launch = _grid_inputs(points, controls, displacements, radius, grid)
+    shapes = dict.fromkeys(_forward.outputs, points.shape[:1])
+    field, *aux = _forward(points.dtype, points.shape[-1])(*inputs, *sizes, launch=launch, shapes=shapes)
+    return field, aux
 
 
-def _field_fwd(points, controls, displacements, radius, grid):
-    field, aux = _field_forward(points, controls, displacements, radius, grid)
-    return field, (points, controls, displacements, radius, grid, aux)
+def _field_adjoint(args, aux, field_bar):
+    points, controls = args[:2]
+    inputs, sizes, launch = _grid_inputs(*args)
+    shapes = dict(zip(_GRAD_NAMES, (points.shape[:1], controls.shape[:1], controls.shape[:1], controls.shape[:1]), strict=True))
+    return _backward(points.dtype, points.shape[-1])(*inputs, *aux, field_bar, *sizes, launch=launch, shapes=shapes)
 
 
-def _field_bwd(residuals, field_bar):
-    points, controls, displacements, radius, grid, aux = residuals
-    _, backward = _callables(points.dtype, points.shape[-1])
-    dims = dict(zip(_GRAD_NAMES, (points.shape[:1], controls.shape[:1], controls.shape[:1], controls.shape[:1]), strict=True))
-    grads = backward(*_grid_inputs(points, controls, displacements, radius, grid), *aux, field_bar, output_dims=dims)
-    return (*grads, None)
-
-
-_field.defvjp(_field_fwd, _field_bwd)
+# The grid is topology (positions stopped upstream): not differentiated.
+_field = with_adjoint(_field_forward, _field_adjoint, constant_argnums=(4,))

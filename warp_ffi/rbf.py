@@ -15,7 +15,7 @@ The adjoint is hand written:
 * ``constant`` and ``linear``: one thread per slice of queries, ``sum g`` and ``sum x g^T``.
 
 Kernels are generated per coordinate count ``D`` (``wp.static`` unrolls the coordinate loops and
-keeps the accumulators in registers) and per dtype (float32 and float64, via ``KernelFamily``).
+keeps the accumulators in registers) and per dtype (float32 and float64).
 Only first-order reverse mode is supported (no ``jvp``), as in the reference's Warp backend.
 """
 
@@ -24,145 +24,122 @@ from __future__ import annotations
 import functools
 from typing import Any
 
-import jax
 import jax.numpy as jnp
-import warp as wp
 
-from ._kernels import KernelFamily
+from ._wrap import KernelFamily, with_adjoint
+from ._wrap import warp as wp
 
 __all__ = ["thin_plate_spline_field"]
 
 # Queries summed by one thread of the control and affine adjoint kernels.
 _SLICE = 256
 
+# The kernels' argument types (float types resolved per overload).
+Batched = wp.array3d(dtype=Any)  # (B, N, D) points and fields, (B, C, D) controls and weights, (B, D, D) linear parts
+PerDesign = wp.array2d(dtype=Any)  # (B, D) constant parts
+
+
+def _types(s):
+    batched = ("points", "controls", "weights", "linear", "field", "field_grad", "points_grad", "controls_grad", "weights_grad")
+    return {name: wp.array3d(dtype=s) for name in (*batched, "linear_grad")} | {"constant": wp.array2d(dtype=s), "constant_grad": wp.array2d(dtype=s)}
+
 
 @functools.cache
-def _kernels(num_dims: int):
+def _kernels(num_dims: int) -> dict:
     """The four kernel families for ``num_dims`` coordinates."""
     D = num_dims
 
+    @wp.func
+    def row(values: wp.array3d(dtype=Any), b: int, i: int):
+        """``values[b, i]`` as a ``D``-vector."""
+        v = wp.vector(dtype=values.dtype, length=wp.static(D))
+        for k in range(wp.static(D)):
+            v[k] = values[b, i, k]
+        return v
+
+    @wp.func
+    def store(values: wp.array3d(dtype=Any), b: int, i: int, v: Any):
+        for k in range(wp.static(D)):
+            values[b, i, k] = v[k]
+
+    @wp.func
+    def linear_map(linear: wp.array3d(dtype=Any), b: int, v: Any, start: Any, transpose: int):
+        """``start + v @ linear[b]``, or ``start + linear[b] @ v`` when ``transpose``, summed in index order."""
+        out = wp.vector(dtype=linear.dtype, length=wp.static(D))
+        for r in range(wp.static(D)):
+            value = start[r]
+            for k in range(wp.static(D)):
+                if transpose == 0:
+                    value += v[k] * linear[b, k, r]
+                else:
+                    value += linear[b, r, k] * v[k]
+            out[r] = value
+        return out
+
     @wp.kernel(enable_backward=False, module="unique")
     def field_kernel(
-        points: wp.array3d(dtype=Any),
-        controls: wp.array3d(dtype=Any),
-        weights: wp.array3d(dtype=Any),
-        constant: wp.array2d(dtype=Any),
-        linear: wp.array3d(dtype=Any),
-        field: wp.array3d(dtype=Any),
-    ):
+        points: Batched, controls: Batched, weights: Batched, constant: PerDesign, linear: Batched, field: Batched,
+    ):  # fmt: skip
         b, i = wp.tid()
-        x = wp.vector(dtype=points.dtype, length=wp.static(D))
-        for k in range(wp.static(D)):
-            x[k] = points[b, i, k]
-        acc = wp.vector(dtype=points.dtype, length=wp.static(D))
+        x = row(points, b, i)
+        offset = wp.vector(dtype=points.dtype, length=wp.static(D))
         for d in range(wp.static(D)):
-            value = constant[b, d]
-            for k in range(wp.static(D)):
-                value += x[k] * linear[b, k, d]
-            acc[d] = value
+            offset[d] = constant[b, d]
+        acc = linear_map(linear, b, x, offset, 0)
         for j in range(controls.shape[1]):
-            s = points.dtype(0.0)
-            for k in range(wp.static(D)):
-                t = x[k] - controls[b, j, k]
-                s += t * t
+            diff = x - row(controls, b, j)
+            s = wp.dot(diff, diff)
             if s > points.dtype(0.0):
-                phi = points.dtype(0.5) * s * wp.log(s)
-                for d in range(wp.static(D)):
-                    acc[d] += phi * weights[b, j, d]
-        for d in range(wp.static(D)):
-            field[b, i, d] = acc[d]
+                acc += points.dtype(0.5) * s * wp.log(s) * row(weights, b, j)
+        store(field, b, i, acc)
 
     @wp.kernel(enable_backward=False, module="unique")
     def points_adjoint_kernel(
-        points: wp.array3d(dtype=Any),
-        controls: wp.array3d(dtype=Any),
-        weights: wp.array3d(dtype=Any),
-        linear: wp.array3d(dtype=Any),
-        field_grad: wp.array3d(dtype=Any),
-        points_grad: wp.array3d(dtype=Any),
-    ):
+        points: Batched, controls: Batched, weights: Batched, linear: Batched, field_grad: Batched, points_grad: Batched,
+    ):  # fmt: skip
         b, i = wp.tid()
-        x = wp.vector(dtype=points.dtype, length=wp.static(D))
-        g = wp.vector(dtype=points.dtype, length=wp.static(D))
-        for k in range(wp.static(D)):
-            x[k] = points[b, i, k]
-            g[k] = field_grad[b, i, k]
-        acc = wp.vector(dtype=points.dtype, length=wp.static(D))
-        for k in range(wp.static(D)):
-            value = points.dtype(0.0)
-            for d in range(wp.static(D)):
-                value += linear[b, k, d] * g[d]
-            acc[k] = value
+        x = row(points, b, i)
+        g = row(field_grad, b, i)
+        acc = linear_map(linear, b, g, wp.vector(dtype=points.dtype, length=wp.static(D)), 1)
         for j in range(controls.shape[1]):
-            diff = wp.vector(dtype=points.dtype, length=wp.static(D))
-            s = points.dtype(0.0)
-            for k in range(wp.static(D)):
-                diff[k] = x[k] - controls[b, j, k]
-                s += diff[k] * diff[k]
+            diff = x - row(controls, b, j)
+            s = wp.dot(diff, diff)
             if s > points.dtype(0.0):
-                gw = points.dtype(0.0)
-                for d in range(wp.static(D)):
-                    gw += g[d] * weights[b, j, d]
                 # d phi / d x = 2 phi'(s) (x - c) = (log s + 1)(x - c)
-                coefficient = (wp.log(s) + points.dtype(1.0)) * gw
-                for k in range(wp.static(D)):
-                    acc[k] += coefficient * diff[k]
-        for k in range(wp.static(D)):
-            points_grad[b, i, k] = acc[k]
+                acc += (wp.log(s) + points.dtype(1.0)) * wp.dot(g, row(weights, b, j)) * diff
+        store(points_grad, b, i, acc)
 
     @wp.kernel(enable_backward=False, module="unique")
     def controls_adjoint_kernel(
-        points: wp.array3d(dtype=Any),
-        controls: wp.array3d(dtype=Any),
-        weights: wp.array3d(dtype=Any),
-        field_grad: wp.array3d(dtype=Any),
-        controls_grad: wp.array3d(dtype=Any),
-        weights_grad: wp.array3d(dtype=Any),
-    ):
+        points: Batched, controls: Batched, weights: Batched, field_grad: Batched, controls_grad: Batched, weights_grad: Batched,
+    ):  # fmt: skip
         b, j, part = wp.tid()
-        c = wp.vector(dtype=points.dtype, length=wp.static(D))
-        w = wp.vector(dtype=points.dtype, length=wp.static(D))
-        for k in range(wp.static(D)):
-            c[k] = controls[b, j, k]
-            w[k] = weights[b, j, k]
+        c = row(controls, b, j)
+        w = row(weights, b, j)
         c_bar = wp.vector(dtype=points.dtype, length=wp.static(D))
         w_bar = wp.vector(dtype=points.dtype, length=wp.static(D))
         start = part * wp.static(_SLICE)
-        stop = wp.min(start + wp.static(_SLICE), points.shape[1])
-        for i in range(start, stop):
-            diff = wp.vector(dtype=points.dtype, length=wp.static(D))
-            s = points.dtype(0.0)
-            for k in range(wp.static(D)):
-                diff[k] = points[b, i, k] - c[k]
-                s += diff[k] * diff[k]
+        for i in range(start, wp.min(start + wp.static(_SLICE), points.shape[1])):
+            diff = row(points, b, i) - c
+            s = wp.dot(diff, diff)
             if s > points.dtype(0.0):
                 log_s = wp.log(s)
-                phi = points.dtype(0.5) * s * log_s
-                gw = points.dtype(0.0)
-                for d in range(wp.static(D)):
-                    g = field_grad[b, i, d]
-                    w_bar[d] += phi * g
-                    gw += g * w[d]
-                coefficient = (log_s + points.dtype(1.0)) * gw
-                for k in range(wp.static(D)):
-                    c_bar[k] -= coefficient * diff[k]
+                g = row(field_grad, b, i)
+                w_bar += points.dtype(0.5) * s * log_s * g
+                c_bar -= (log_s + points.dtype(1.0)) * wp.dot(g, w) * diff
         for k in range(wp.static(D)):
             wp.atomic_add(controls_grad, b, j, k, c_bar[k])
             wp.atomic_add(weights_grad, b, j, k, w_bar[k])
 
     @wp.kernel(enable_backward=False, module="unique")
     def affine_adjoint_kernel(
-        points: wp.array3d(dtype=Any),
-        field_grad: wp.array3d(dtype=Any),
-        constant_grad: wp.array2d(dtype=Any),
-        linear_grad: wp.array3d(dtype=Any),
-    ):
+        points: Batched, field_grad: Batched, constant_grad: PerDesign, linear_grad: Batched,
+    ):  # fmt: skip
         b, part = wp.tid()
         a_bar = wp.vector(dtype=points.dtype, length=wp.static(D))
         l_bar = wp.matrix(dtype=points.dtype, shape=(wp.static(D), wp.static(D)))
         start = part * wp.static(_SLICE)
-        stop = wp.min(start + wp.static(_SLICE), points.shape[1])
-        for i in range(start, stop):
+        for i in range(start, wp.min(start + wp.static(_SLICE), points.shape[1])):
             for d in range(wp.static(D)):
                 g = field_grad[b, i, d]
                 a_bar[d] += g
@@ -173,32 +150,13 @@ def _kernels(num_dims: int):
             for k in range(wp.static(D)):
                 wp.atomic_add(linear_grad, b, k, d, l_bar[k, d])
 
-    a3 = lambda T: wp.array3d(dtype=T)  # noqa: E731
-    a2 = lambda T: wp.array2d(dtype=T)  # noqa: E731
+    scattered = ("controls_grad", "weights_grad", "constant_grad", "linear_grad")
     return {
-        "field": KernelFamily(
-            field_kernel,
-            lambda T: {"points": a3(T), "controls": a3(T), "weights": a3(T), "constant": a2(T), "linear": a3(T), "field": a3(T)},
-        ),
-        "points_adjoint": KernelFamily(
-            points_adjoint_kernel,
-            lambda T: {"points": a3(T), "controls": a3(T), "weights": a3(T), "linear": a3(T), "field_grad": a3(T), "points_grad": a3(T)},
-        ),
-        "controls_adjoint": KernelFamily(
-            controls_adjoint_kernel,
-            lambda T: {
-                "points": a3(T), "controls": a3(T), "weights": a3(T), "field_grad": a3(T),
-                "controls_grad": a3(T), "weights_grad": a3(T),
-            },
-            num_outputs=2,
-            in_out_argnames=["controls_grad", "weights_grad"],
-        ),
-        "affine_adjoint": KernelFamily(
-            affine_adjoint_kernel,
-            lambda T: {"points": a3(T), "field_grad": a3(T), "constant_grad": a2(T), "linear_grad": a3(T)},
-            num_outputs=2,
-            in_out_argnames=["constant_grad", "linear_grad"],
-        ),
+        "field": KernelFamily(field_kernel, _types, outputs=("field",)),
+        "points_adjoint": KernelFamily(points_adjoint_kernel, _types, outputs=("points_grad",)),
+        # These two scatter per-slice sums with atomics into zeroed buffers.
+        "controls_adjoint": KernelFamily(controls_adjoint_kernel, _types, outputs=scattered[:2], accumulate=scattered[:2]),
+        "affine_adjoint": KernelFamily(affine_adjoint_kernel, _types, outputs=scattered[2:], accumulate=scattered[2:]),
     }
 
 
@@ -206,7 +164,6 @@ def _num_slices(num_points: int) -> int:
     return -(-num_points // _SLICE)
 
 
-@jax.custom_vjp
 def thin_plate_spline_field(points, controls, weights, constant, linear):
     """Thin-plate-spline field on ``(B, N, D)`` points.
 
@@ -221,47 +178,39 @@ def thin_plate_spline_field(points, controls, weights, constant, linear):
     return _field(points, controls, weights, constant, linear)
 
 
-def _field(points, controls, weights, constant, linear):
+def _field_forward(points, controls, weights, constant, linear):
     batch, num_points, num_dims = points.shape
     if batch == 0 or num_points == 0:
-        return jnp.zeros(points.shape, points.dtype)
+        return jnp.zeros(points.shape, points.dtype), ()
     (field,) = _kernels(num_dims)["field"](points.dtype)(
-        points, controls, weights, constant, linear, launch_dims=(batch, num_points), output_dims={"field": points.shape}
+        points, controls, weights, constant, linear, launch=(batch, num_points), shapes={"field": points.shape}
     )
-    return field
+    return field, ()
 
 
-def _field_fwd(points, controls, weights, constant, linear):
-    return _field(points, controls, weights, constant, linear), (points, controls, weights, linear)
-
-
-def _field_bwd(residuals, field_grad):
-    points, controls, weights, linear = residuals
+def _field_adjoint(args, saved, field_grad):
+    points, controls, weights, constant, linear = args
     batch, num_points, num_dims = points.shape
     num_controls = controls.shape[1]
     dtype = points.dtype
-    controls_grad = jnp.zeros(controls.shape, dtype)
-    weights_grad = jnp.zeros(weights.shape, dtype)
-    constant_grad = jnp.zeros((batch, num_dims), dtype)
-    linear_grad = jnp.zeros(linear.shape, dtype)
     if batch == 0 or num_points == 0:
-        return jnp.zeros(points.shape, dtype), controls_grad, weights_grad, constant_grad, linear_grad
+        return jnp.zeros_like(points), jnp.zeros_like(controls), jnp.zeros_like(weights), jnp.zeros_like(constant), jnp.zeros_like(linear)
     kernels = _kernels(num_dims)
     field_grad = field_grad.astype(dtype)
     (points_grad,) = kernels["points_adjoint"](dtype)(
-        points, controls, weights, linear, field_grad,
-        launch_dims=(batch, num_points), output_dims={"points_grad": points.shape},
+        points, controls, weights, linear, field_grad, launch=(batch, num_points), shapes={"points_grad": points.shape}
     )
     slices = _num_slices(num_points)
+    controls_grad, weights_grad = jnp.zeros_like(controls), jnp.zeros_like(weights)
     if num_controls:
         controls_grad, weights_grad = kernels["controls_adjoint"](dtype)(
-            points, controls, weights, field_grad, controls_grad, weights_grad,
-            launch_dims=(batch, num_controls, slices),
-        )
+            points, controls, weights, field_grad, launch=(batch, num_controls, slices),
+            shapes={"controls_grad": controls.shape, "weights_grad": weights.shape},
+        )  # fmt: skip
     constant_grad, linear_grad = kernels["affine_adjoint"](dtype)(
-        points, field_grad, constant_grad, linear_grad, launch_dims=(batch, slices)
+        points, field_grad, launch=(batch, slices), shapes={"constant_grad": constant.shape, "linear_grad": linear.shape}
     )
     return points_grad, controls_grad, weights_grad, constant_grad, linear_grad
 
 
-thin_plate_spline_field.defvjp(_field_fwd, _field_bwd)
+_field = with_adjoint(_field_forward, _field_adjoint)

@@ -32,15 +32,14 @@ BVH; for a prebuilt BVH the frame is the identity. Distances are measured on
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from ._kernels import WARP_SCALAR, launch_in_chunks
-from ._kernels import warp as wp
-from .bvh import build_mesh, mesh_id
+from ._grid import mesh_id, mesh_in_call
+from ._wrap import CallableFamily, Overloads, launch_in_chunks, scalars, vectors
+from ._wrap import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
@@ -145,18 +144,10 @@ def _nearest_in_ball(
 
 @wp.kernel
 def _nearest_kernel(
-    mesh_words: wp.array(dtype=wp.uint32),
-    points: wp.array(dtype=Any),
-    vertices: wp.array(dtype=Any),
-    faces: wp.array(dtype=wp.int32),
-    valid: wp.array(dtype=wp.int32),
-    search_points: wp.array(dtype=wp.vec3),
-    inv_scale: wp.array(dtype=Any),
-    limits: wp.array(dtype=wp.float32),
-    exact: int,
-    offset: int,
-    nearest: wp.array(dtype=wp.int32),
-):
+    mesh_words: wp.array(dtype=wp.uint32), points: wp.array(dtype=Any), vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32), search_points: wp.array(dtype=wp.vec3),
+    inv_scale: wp.array(dtype=Any), limits: wp.array(dtype=wp.float32), exact: int, offset: int, nearest: wp.array(dtype=wp.int32),
+):  # fmt: skip
     _b, item = wp.tid()
     i = item + offset
     mesh = mesh_id(mesh_words)
@@ -199,64 +190,37 @@ def _nearest_kernel(
     nearest[i] = best
 
 
-@functools.cache
-def _kernel(dtype):
-    scalar = WARP_SCALAR[jnp.dtype(dtype)]
-    vec = wp.types.vector(3, scalar)
-    return wp.overload(
-        _nearest_kernel,
-        [wp.array(dtype=wp.uint32), wp.array(dtype=vec), wp.array(dtype=vec), wp.array(dtype=wp.int32), wp.array(dtype=wp.int32),
-         wp.array(dtype=wp.vec3), wp.array(dtype=scalar), wp.array(dtype=wp.float32), int, int, wp.array(dtype=wp.int32)],
-    )  # fmt: skip
+_nearest = Overloads(_nearest_kernel, lambda s: {"points": vectors(s), "vertices": vectors(s), "inv_scale": scalars(s)})
 
 
-# Register both overloads up front: each new overload set recompiles the module.
-for _dtype in WARP_SCALAR:
-    _kernel(_dtype)
-
-
-_SEARCH_NAMES = ("points", "vertices", "faces", "valid", "search_points", "inv_scale", "limits")
-
-
-def _search_types(dtype) -> tuple:
-    scalar = WARP_SCALAR[jnp.dtype(dtype)]
-    vec = wp.array(dtype=wp.types.vector(3, scalar))
+def _search_types(scalar, build: bool) -> dict:
+    head = {"search_vertices": wp.array(dtype=wp.vec3)} if build else {"mesh_words": wp.array(dtype=wp.uint32)}
     ints = wp.array(dtype=wp.int32)
-    return (vec, vec, ints, ints, wp.array(dtype=wp.vec3), wp.array(dtype=scalar), wp.array(dtype=wp.float32))
+    inputs = {"points": vectors(scalar), "vertices": vectors(scalar), "faces": ints, "valid": ints,
+              "search_points": wp.array(dtype=wp.vec3), "inv_scale": scalars(scalar), "limits": scalars(wp.float32)}  # fmt: skip
+    return {**head, **inputs, "nearest": ints}
 
 
-@functools.cache
-def _search_callable(dtype, build: bool):
-    """FFI callable: search a prebuilt mesh (``mesh_words``), or build one from its inputs first."""
-    kernel = _kernel(dtype)
+def _search(dtype, build: bool):
+    """The body of the search of a prebuilt mesh (``mesh_words``), or of one built from its inputs first."""
+    kernel = _nearest(dtype)
+    exact = int(dtype == jnp.float64)
 
-    exact = int(jnp.dtype(dtype) == jnp.float64)
-
-    def search(mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
+    def search_prepared(mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
         inputs = [mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, exact]
         launch_in_chunks(kernel, 1, points.shape[0], inputs, [nearest], min_chunk=1024)
 
-    if build:
+    if not build:
+        return search_prepared
 
-        def body(search_vertices, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
-            mesh = build_mesh(search_vertices, faces, winding_number=False, device=nearest.device)
-            words = wp.array([mesh.id & 0xFFFFFFFF, mesh.id >> 32], dtype=wp.uint32, device=nearest.device)
-            search(words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest)
-            if not nearest.device.is_cpu:
-                # The mesh is freed on return; the launch must be finished by then.
-                wp.synchronize_stream(wp.get_stream(nearest.device))
+    def search_built(search_vertices, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
+        with mesh_in_call(search_vertices, faces, winding_number=False) as (_, words):
+            search_prepared(words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest)
 
-        head = {"search_vertices": wp.array(dtype=wp.vec3)}
-    else:
+    return search_built
 
-        def body(mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
-            search(mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest)
 
-        head = {"mesh_words": wp.array(dtype=wp.uint32)}
-    body.__annotations__ = {**head, **dict(zip(_SEARCH_NAMES, _search_types(dtype), strict=True)), "nearest": wp.array(dtype=wp.int32)}
-    body.__module__ = __name__
-    mode = wp.JaxCallableGraphMode.NONE if build else wp.JaxCallableGraphMode.JAX
-    return wp.jax_callable(body, num_outputs=1, vmap_method="sequential", graph_mode=mode)
+_search_family = CallableFamily(_search, _search_types, outputs=("nearest",), builds=lambda build: build, module=__name__)
 
 
 def nearest_valid_faces(
@@ -272,7 +236,7 @@ def nearest_valid_faces(
     """Index of the nearest valid face of each query (``-1``: none within the gate).
 
     Args:
-        mesh: the ``(2,)`` uint32 ``mesh_words`` of a prebuilt BVH (see ``warp_ffi.bvh``), or
+        mesh: the ``(2,)`` uint32 ``mesh_words`` of a prebuilt BVH (see ``warp_ffi.host``), or
             the float32 ``(V, 3)`` search-frame vertices to build one from in the call.
         points: ``(Q, 3)`` queries in the working dtype.
         vertices: ``(V, 3)`` target vertices, same dtype.
@@ -288,7 +252,7 @@ def nearest_valid_faces(
     Faces farther than the gate may be returned; callers re-gate on the exact distance.
     """
     build = mesh.dtype != jnp.uint32
-    (nearest,) = _search_callable(jnp.dtype(points.dtype), build)(
-        mesh, points, vertices, faces, valid, search_points, inv_scale, limits, output_dims={"nearest": points.shape[:1]}
+    (nearest,) = _search_family(points.dtype, build)(
+        mesh, points, vertices, faces, valid, search_points, inv_scale, limits, shapes={"nearest": points.shape[:1]}
     )
     return nearest

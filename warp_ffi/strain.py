@@ -19,56 +19,19 @@ cell and the backward kernel scatters them, times the cotangent, to the sorted v
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from ._energy import (
-    cell_edges,
-    factorial,
-    finite,
-    finite3,
-    flat_vectors,
-    gram_schmidt,
-    kernel_indices,
-    launch,
-    scatter_edge_gradients,
-    sorted_cell,
-)
-from ._kernels import WARP_SCALAR
-from ._kernels import warp as wp
+from . import _energy
+from ._energy import Coordinates, PerItem, Topology, factorial, finite, gram_schmidt, load_cell, scatter_edge_gradients, sorted_cell
+from ._wrap import scalars, vectors, with_adjoint
+from ._wrap import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
 __all__ = ["simplex_strain_terms"]
-
-
-@wp.func
-def _state(points: wp.array(dtype=Any), reference: wp.array(dtype=Any), cells: wp.array2d(dtype=wp.int32), b: int, c: int, num_points: int):
-    """Gather a cell, orthogonalise its reference edges and decide whether it is valid."""
-    m = cells.shape[1] - 1
-    v, in_range = sorted_cell(cells, c, num_points)
-    zero = points[0] - points[0]
-    e0 = zero
-    e1 = zero
-    e2 = zero
-    a0 = zero
-    a1 = zero
-    a2 = zero
-    usable = False
-    if in_range:
-        base = b * num_points
-        e0, e1, e2 = cell_edges(points, base, v, m)
-        a0, a1, a2 = cell_edges(reference, base, v, m)
-        usable = finite3(e0, e1, e2) and finite3(a0, a1, a2)
-    q0, q1, q2, r00, r01, r02, r11, r12, r22 = gram_schmidt(a0, a1, a2, m)
-    rest = r00 * r11 * r22 / factorial(m, r00)
-    nil = type(r00)(0.0)
-    finite_entries = finite(r01) and finite(r02) and finite(r12) and finite(rest)
-    positive = r00 > nil and r11 > nil and r22 > nil
-    return usable and finite_entries and positive, v, e0, e1, e2, q0, q1, q2, r00, r01, r02, r11, r12, r22, rest
 
 
 @wp.func
@@ -143,61 +106,57 @@ def _back_substitute(y0: Any, y1: Any, y2: Any, r00: Any, r01: Any, r02: Any, r1
     return z0, z1, z2
 
 
-@wp.kernel
-def _forward_kernel(
-    points: wp.array(dtype=Any),
-    reference: wp.array(dtype=Any),
-    cells: wp.array2d(dtype=wp.int32),
-    moduli: wp.array(dtype=Any),
-    num_points: int,
-    offset: int,
-    energy: wp.array(dtype=Any),
-):
-    b, t = wp.tid()
-    c = t + offset
-    num_cells = cells.shape[0]
-    if c >= num_cells:
-        return
-    out = b * num_cells + c
-    valid, v, e0, e1, e2, q0, q1, q2, r00, r01, r02, r11, r12, r22, rest = _state(points, reference, cells, b, c, num_points)
-    if not valid:
-        energy[out] = energy.dtype(wp.nan)
-        return
+@wp.func
+def _cell_energy(
+    points: wp.array(dtype=Any), reference: wp.array(dtype=Any), cells: wp.array2d(dtype=wp.int32), moduli: wp.array(dtype=Any),
+    b: int, c: int, num_points: int,
+):  # fmt: skip
+    """Whether the cell is valid, its energy ``V0 w`` and what its gradients need (meaningless when invalid)."""
     m = cells.shape[1] - 1
+    v, usable, e0, e1, e2, a0, a1, a2 = load_cell(points, reference, cells, b, c, num_points)
+    q0, q1, q2, r00, r01, r02, r11, r12, r22 = gram_schmidt(a0, a1, a2, m)
+    rest = r00 * r11 * r22 / factorial(m, r00)
+    nil = type(r00)(0.0)
+    finite_entries = finite(r01) and finite(r02) and finite(r12) and finite(rest)
+    positive = r00 > nil and r11 > nil and r22 > nil
     f0, f1, f2 = _deformation(e0, e1, e2, r00, r01, r02, r11, r12, r22, m)
     w, stress, cauchy_green = _density(f0, f1, f2, moduli[0], moduli[1], m)
-    energy[out] = rest * w
+    valid = usable and finite_entries and positive
+    return valid, rest * w, f0, f1, f2, q0, q1, q2, r00, r01, r02, r11, r12, r22, rest, w, stress, cauchy_green
+
+
+@wp.kernel
+def _forward_kernel(
+    points: Coordinates, reference: Coordinates, cells: Topology, moduli: wp.array(dtype=Any), num_points: int, offset: int,
+    energy: PerItem,
+):  # fmt: skip
+    b, t = wp.tid()
+    c = t + offset
+    valid, cell_energy, f0, f1, f2, q0, q1, q2, r00, r01, r02, r11, r12, r22, rest, w, stress, cauchy_green = _cell_energy(
+        points, reference, cells, moduli, b, c, num_points
+    )
+    energy[b * cells.shape[0] + c] = wp.where(valid, cell_energy, energy.dtype(wp.nan))
 
 
 @wp.kernel
 def _gradient_kernel(
-    points: wp.array(dtype=Any),
-    reference: wp.array(dtype=Any),
-    cells: wp.array2d(dtype=wp.int32),
-    moduli: wp.array(dtype=Any),
-    num_points: int,
-    offset: int,
-    energy: wp.array(dtype=Any),
-    edge_gradients: wp.array2d(dtype=Any),
-    valid_cells: wp.array(dtype=wp.int32),
-):
+    points: Coordinates, reference: Coordinates, cells: Topology, moduli: wp.array(dtype=Any), num_points: int, offset: int,
+    energy: PerItem, edge_gradients: wp.array2d(dtype=Any), valid_cells: wp.array(dtype=wp.int32),
+):  # fmt: skip
     """The energy and, for the adjoint, ``dW/dE`` (rows 0-2) and ``dW/dE0`` (rows 3-5) per cell."""
     b, t = wp.tid()
     c = t + offset
-    num_cells = cells.shape[0]
-    if c >= num_cells:
-        return
-    out = b * num_cells + c
-    valid, v, e0, e1, e2, q0, q1, q2, r00, r01, r02, r11, r12, r22, rest = _state(points, reference, cells, b, c, num_points)
+    out = b * cells.shape[0] + c
+    valid, cell_energy, f0, f1, f2, q0, q1, q2, r00, r01, r02, r11, r12, r22, rest, w, stress, cauchy_green = _cell_energy(
+        points, reference, cells, moduli, b, c, num_points
+    )
     if not valid:
         energy[out] = energy.dtype(wp.nan)
         valid_cells[out] = 0
         return
     valid_cells[out] = 1
+    energy[out] = cell_energy
     m = cells.shape[1] - 1
-    f0, f1, f2 = _deformation(e0, e1, e2, r00, r01, r02, r11, r12, r22, m)
-    w, stress, cauchy_green = _density(f0, f1, f2, moduli[0], moduli[1], m)
-    energy[out] = rest * w
 
     # dW/dE = 2 V0 R^-1 S F^T
     y = stress * wp.matrix_from_rows(f0, f1, f2)
@@ -226,22 +185,13 @@ def _gradient_kernel(
 
 @wp.kernel
 def _scatter_kernel(
-    cells: wp.array2d(dtype=wp.int32),
-    edge_gradients: wp.array2d(dtype=Any),
-    valid_cells: wp.array(dtype=wp.int32),
-    energy_bar: wp.array(dtype=Any),
-    num_points: int,
-    offset: int,
-    points_bar: wp.array(dtype=Any),
-    reference_bar: wp.array(dtype=Any),
-):
+    cells: Topology, edge_gradients: wp.array2d(dtype=Any), valid_cells: wp.array(dtype=wp.int32), energy_bar: PerItem,
+    num_points: int, offset: int, points_bar: Coordinates, reference_bar: Coordinates,
+):  # fmt: skip
     """Vertex gradients: the stored edge gradients of valid cells times the cotangent."""
     b, t = wp.tid()
     c = t + offset
-    num_cells = cells.shape[0]
-    if c >= num_cells:
-        return
-    out = b * num_cells + c
+    out = b * cells.shape[0] + c
     if valid_cells[out] == 0:
         return
     m = cells.shape[1] - 1
@@ -252,51 +202,18 @@ def _scatter_kernel(
     scatter_edge_gradients(reference_bar, base, v, m, g * edge_gradients[out, 3], g * edge_gradients[out, 4], g * edge_gradients[out, 5])
 
 
-@functools.cache
-def _callables(dtype):
-    """``(energy, energy_and_gradients, scatter)`` JAX callables for one float dtype."""
-    scalar = WARP_SCALAR[jnp.dtype(dtype)]
-    vectors = wp.array(dtype=wp.types.vector(3, scalar))
-    vector_table = wp.array2d(dtype=wp.types.vector(3, scalar))
-    reals = wp.array(dtype=scalar)
-    flags = wp.array(dtype=wp.int32)
-    cells_type = wp.array2d(dtype=wp.int32)
-    forward_kernel = wp.overload(_forward_kernel, [vectors, vectors, cells_type, reals, int, int, reals])
-    gradient_kernel = wp.overload(_gradient_kernel, [vectors, vectors, cells_type, reals, int, int, reals, vector_table, flags])
-    scatter_kernel = wp.overload(_scatter_kernel, [cells_type, vector_table, flags, reals, int, int, vectors, vectors])
-
-    def forward(points, reference, cells, moduli, energy):
-        num_batch = energy.shape[0] // cells.shape[0]
-        launch(forward_kernel, num_batch, cells.shape[0], [points, reference, cells, moduli, points.shape[0] // num_batch], [energy])
-
-    def forward_with_gradients(points, reference, cells, moduli, energy, edge_gradients, valid_cells):
-        num_batch = energy.shape[0] // cells.shape[0]
-        inputs = [points, reference, cells, moduli, points.shape[0] // num_batch]
-        launch(gradient_kernel, num_batch, cells.shape[0], inputs, [energy, edge_gradients, valid_cells])
-
-    def scatter(cells, edge_gradients, valid_cells, energy_bar, points_bar, reference_bar):
-        num_batch = energy_bar.shape[0] // cells.shape[0]
-        inputs = [cells, edge_gradients, valid_cells, energy_bar, points_bar.shape[0] // num_batch]
-        launch(scatter_kernel, num_batch, cells.shape[0], inputs, [points_bar, reference_bar], accumulated=(0, 1))
-
-    forward.__annotations__ = dict(points=vectors, reference=vectors, cells=cells_type, moduli=reals, energy=reals)
-    forward_with_gradients.__annotations__ = dict(
-        points=vectors, reference=vectors, cells=cells_type, moduli=reals, energy=reals, edge_gradients=vector_table,
-        valid_cells=flags,
-    )  # fmt: skip
-    scatter.__annotations__ = dict(
-        cells=cells_type, edge_gradients=vector_table, valid_cells=flags, energy_bar=reals, points_bar=vectors, reference_bar=vectors
-    )
-    return (
-        wp.jax_callable(forward, num_outputs=1, vmap_method="sequential"),
-        wp.jax_callable(forward_with_gradients, num_outputs=3, vmap_method="sequential"),
-        wp.jax_callable(scatter, num_outputs=2, vmap_method="sequential"),
-    )
+def _types(s):
+    return {name: vectors(s) for name in ("points", "reference", *_energy.GRADIENT_NAMES)} | {
+        "moduli": scalars(s),
+        "energy": scalars(s),
+        "energy_bar": scalars(s),
+        "edge_gradients": vectors(s, ndim=2),
+    }
 
 
-# Register every overload now: a new overload after the module is built forces a rebuild.
-for _dtype in WARP_SCALAR:
-    _callables(_dtype)
+_forward = _energy.energy_family(_forward_kernel, _types, outputs=("energy",))
+_forward_with_gradients = _energy.energy_family(_gradient_kernel, _types, outputs=("energy", "edge_gradients", "valid_cells"))
+_scatter = _energy.energy_family(_scatter_kernel, _types, outputs=_energy.GRADIENT_NAMES, accumulate=_energy.GRADIENT_NAMES)
 
 
 @jax.jit
@@ -312,35 +229,35 @@ def simplex_strain_terms(points: jax.Array, reference_points: jax.Array, cells: 
     3-vectors, e.g. 28 MB for 196,608 float64 tetrahedra), so the backward pass only scales
     and scatters them instead of recomputing the cell state.
     """
-    num_batch, num_points, _ = points.shape
+    num_batch = points.shape[0]
     moduli = jnp.stack([shear_modulus, bulk_term]).astype(points.dtype)
-    indices = kernel_indices(cells, num_points)
-    energy = _energy(flat_vectors(points), flat_vectors(reference_points), indices, moduli, num_batch, num_points)
+    energy = _strain_energy(*_energy.kernel_inputs(points, reference_points, cells), moduli, num_batch)
     return energy.reshape(num_batch, -1)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(4, 5))
-def _energy(points, reference, cells, moduli, num_batch, num_points):
-    forward, _, _ = _callables(points.dtype)
-    (energy,) = forward(points, reference, cells, moduli, output_dims={"energy": (num_batch * cells.shape[0],)})
+def _energy_only(points, reference, cells, moduli, num_batch):
+    size, num_points = num_batch * cells.shape[0], points.shape[0] // num_batch
+    (energy,) = _forward(points.dtype)(points, reference, cells, moduli, num_points, launch=(num_batch, cells.shape[0]), shapes={"energy": (size,)})
     return energy
 
 
-def _energy_fwd(points, reference, cells, moduli, num_batch, num_points):
-    _, forward_with_gradients, _ = _callables(points.dtype)
-    size = num_batch * cells.shape[0]
-    dims = {"energy": (size,), "edge_gradients": (size, 6), "valid_cells": (size,)}
-    energy, edge_gradients, valid_cells = forward_with_gradients(points, reference, cells, moduli, output_dims=dims)
-    return energy, (cells, edge_gradients, valid_cells, moduli)
+def _energy_and_edge_gradients(points, reference, cells, moduli, num_batch):
+    size, num_points = num_batch * cells.shape[0], points.shape[0] // num_batch
+    shapes = {"energy": (size,), "edge_gradients": (size, 6), "valid_cells": (size,)}
+    energy, edge_gradients, valid_cells = _forward_with_gradients(points.dtype)(
+        points, reference, cells, moduli, num_points, launch=(num_batch, cells.shape[0]), shapes=shapes
+    )
+    return energy, (edge_gradients, valid_cells)
 
 
-def _energy_bwd(num_batch, num_points, residuals, energy_bar):
-    cells, edge_gradients, valid_cells, moduli = residuals
-    _, _, scatter = _callables(edge_gradients.dtype)
-    dims = {"points_bar": (num_batch * num_points,), "reference_bar": (num_batch * num_points,)}
-    points_bar, reference_bar = scatter(cells, edge_gradients, valid_cells, energy_bar, output_dims=dims)
-    # The moduli are validated Python floats, not differentiated.
-    return points_bar, reference_bar, None, jnp.zeros_like(moduli)
+def _scattered_gradients(args, saved, energy_bar):
+    points, reference, cells, moduli, num_batch = args
+    edge_gradients, valid_cells = saved
+    shapes = dict.fromkeys(_energy.GRADIENT_NAMES, points.shape[:1])
+    return _scatter(points.dtype)(
+        cells, edge_gradients, valid_cells, energy_bar, points.shape[0] // num_batch, launch=(num_batch, cells.shape[0]), shapes=shapes
+    )
 
 
-_energy.defvjp(_energy_fwd, _energy_bwd)
+# The moduli are validated Python floats, not differentiated.
+_strain_energy = with_adjoint(_energy_and_edge_gradients, _scattered_gradients, primal=_energy_only, static_argnums=(4,), constant_argnums=(2, 3))

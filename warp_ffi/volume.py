@@ -9,15 +9,14 @@ adjoint kernel scatters ``(y_1 x y_2) / 6`` etc. to the face's vertices.
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
-from ._energy import finite3, flat_vectors, kernel_indices, launch
-from ._kernels import WARP_SCALAR
-from ._kernels import warp as wp
+from . import _energy
+from ._energy import Coordinates, PerItem, Topology, finite3
+from ._wrap import scalars, vectors
+from ._wrap import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
@@ -46,107 +45,65 @@ def _face(points: wp.array(dtype=Any), triangles: wp.array2d(dtype=wp.int32), or
     return valid, i, j, k, y0, y1, y2
 
 
-@wp.kernel
-def _forward_kernel(
-    points: wp.array(dtype=Any),
-    reference: wp.array(dtype=Any),
-    triangles: wp.array2d(dtype=wp.int32),
-    origins: wp.array2d(dtype=Any),
-    num_points: int,
-    offset: int,
-    volume: wp.array(dtype=Any),
-    reference_volume: wp.array(dtype=Any),
-):
-    b, t = wp.tid()
-    f = t + offset
-    num_faces = triangles.shape[0]
-    if f >= num_faces:
-        return
-    out = b * num_faces + f
-    sixth = volume.dtype(1.0) / volume.dtype(6.0)
-    nan = volume.dtype(wp.nan)
-    valid, i, j, k, y0, y1, y2 = _face(points, triangles, origins[b, 0], b, f, num_points)
-    volume[out] = nan
+@wp.func
+def _signed_volume(points: wp.array(dtype=Any), triangles: wp.array2d(dtype=wp.int32), origin: Any, b: int, f: int, num_points: int):
+    """``y_0 . (y_1 x y_2) / 6`` of face ``f``, NaN when it is invalid."""
+    valid, i, j, k, y0, y1, y2 = _face(points, triangles, origin, b, f, num_points)
+    sixth = type(origin[0])(1.0) / type(origin[0])(6.0)
     if valid:
-        volume[out] = wp.dot(y0, wp.cross(y1, y2)) * sixth
-    valid, i, j, k, y0, y1, y2 = _face(reference, triangles, origins[b, 1], b, f, num_points)
-    reference_volume[out] = nan
-    if valid:
-        reference_volume[out] = wp.dot(y0, wp.cross(y1, y2)) * sixth
+        return wp.dot(y0, wp.cross(y1, y2)) * sixth
+    return type(origin[0])(wp.nan)
 
 
 @wp.func
-def _scatter_face(grad: wp.array(dtype=Any), g: Any, i: int, j: int, k: int, y0: Any, y1: Any, y2: Any):
-    wp.atomic_add(grad, i, g * wp.cross(y1, y2))
-    wp.atomic_add(grad, j, g * wp.cross(y2, y0))
-    wp.atomic_add(grad, k, g * wp.cross(y0, y1))
+def _scatter_volume_gradient(
+    grad: wp.array(dtype=Any), points: wp.array(dtype=Any), triangles: wp.array2d(dtype=wp.int32), origin: Any, g: Any, b: int,
+    f: int, num_points: int,
+):  # fmt: skip
+    """Add ``g`` times the gradient of face ``f``'s signed volume to its vertices (none when invalid)."""
+    valid, i, j, k, y0, y1, y2 = _face(points, triangles, origin, b, f, num_points)
+    if valid:
+        g = g * (type(g)(1.0) / type(g)(6.0))
+        wp.atomic_add(grad, i, g * wp.cross(y1, y2))
+        wp.atomic_add(grad, j, g * wp.cross(y2, y0))
+        wp.atomic_add(grad, k, g * wp.cross(y0, y1))
+
+
+@wp.kernel
+def _forward_kernel(
+    points: Coordinates, reference: Coordinates, triangles: Topology, origins: wp.array2d(dtype=Any), num_points: int, offset: int,
+    volume: PerItem, reference_volume: PerItem,
+):  # fmt: skip
+    b, t = wp.tid()
+    f = t + offset
+    out = b * triangles.shape[0] + f
+    volume[out] = _signed_volume(points, triangles, origins[b, 0], b, f, num_points)
+    reference_volume[out] = _signed_volume(reference, triangles, origins[b, 1], b, f, num_points)
 
 
 @wp.kernel
 def _adjoint_kernel(
-    points: wp.array(dtype=Any),
-    reference: wp.array(dtype=Any),
-    triangles: wp.array2d(dtype=wp.int32),
-    origins: wp.array2d(dtype=Any),
-    volume_bar: wp.array(dtype=Any),
-    reference_volume_bar: wp.array(dtype=Any),
-    num_points: int,
-    offset: int,
-    points_bar: wp.array(dtype=Any),
-    reference_bar: wp.array(dtype=Any),
-):
+    points: Coordinates, reference: Coordinates, triangles: Topology, origins: wp.array2d(dtype=Any), volume_bar: PerItem,
+    reference_volume_bar: PerItem, num_points: int, offset: int, points_bar: Coordinates, reference_bar: Coordinates,
+):  # fmt: skip
     b, t = wp.tid()
     f = t + offset
-    num_faces = triangles.shape[0]
-    if f >= num_faces:
-        return
-    out = b * num_faces + f
-    sixth = volume_bar.dtype(1.0) / volume_bar.dtype(6.0)
-    valid, i, j, k, y0, y1, y2 = _face(points, triangles, origins[b, 0], b, f, num_points)
-    if valid:
-        _scatter_face(points_bar, volume_bar[out] * sixth, i, j, k, y0, y1, y2)
-    valid, i, j, k, y0, y1, y2 = _face(reference, triangles, origins[b, 1], b, f, num_points)
-    if valid:
-        _scatter_face(reference_bar, reference_volume_bar[out] * sixth, i, j, k, y0, y1, y2)
+    out = b * triangles.shape[0] + f
+    _scatter_volume_gradient(points_bar, points, triangles, origins[b, 0], volume_bar[out], b, f, num_points)
+    _scatter_volume_gradient(reference_bar, reference, triangles, origins[b, 1], reference_volume_bar[out], b, f, num_points)
 
 
-@functools.cache
-def _callables(dtype):
-    """``(forward, adjoint)`` JAX callables for one float dtype."""
-    scalar = WARP_SCALAR[jnp.dtype(dtype)]
-    vectors = wp.array(dtype=wp.types.vector(3, scalar))
-    origins_type = wp.array2d(dtype=wp.types.vector(3, scalar))
-    reals = wp.array(dtype=scalar)
-    faces_type = wp.array2d(dtype=wp.int32)
-    forward_kernel = wp.overload(_forward_kernel, [vectors, vectors, faces_type, origins_type, int, int, reals, reals])
-    adjoint_kernel = wp.overload(_adjoint_kernel, [vectors, vectors, faces_type, origins_type, reals, reals, int, int, vectors, vectors])
-
-    def forward(points, reference, triangles, origins, volume, reference_volume):
-        num_batch = origins.shape[0]
-        inputs = [points, reference, triangles, origins, points.shape[0] // num_batch]
-        launch(forward_kernel, num_batch, triangles.shape[0], inputs, [volume, reference_volume])
-
-    def adjoint(points, reference, triangles, origins, volume_bar, reference_volume_bar, points_bar, reference_bar):
-        num_batch = origins.shape[0]
-        inputs = [points, reference, triangles, origins, volume_bar, reference_volume_bar, points.shape[0] // num_batch]
-        launch(adjoint_kernel, num_batch, triangles.shape[0], inputs, [points_bar, reference_bar], accumulated=(0, 1))
-
-    forward.__annotations__ = dict(
-        points=vectors, reference=vectors, triangles=faces_type, origins=origins_type, volume=reals, reference_volume=reals
-    )
-    adjoint.__annotations__ = dict(
-        points=vectors, reference=vectors, triangles=faces_type, origins=origins_type, volume_bar=reals,
-        reference_volume_bar=reals, points_bar=vectors, reference_bar=vectors,
-    )  # fmt: skip
-    return (
-        wp.jax_callable(forward, num_outputs=2, vmap_method="sequential"),
-        wp.jax_callable(adjoint, num_outputs=2, vmap_method="sequential"),
-    )
+def _types(s):
+    return {name: vectors(s) for name in ("points", "reference", *_energy.GRADIENT_NAMES)} | {
+        "origins": vectors(s, ndim=2),
+        **{name: scalars(s) for name in ("volume", "reference_volume", "volume_bar", "reference_volume_bar")},
+    }
 
 
-# Register both overloads now: a new overload after the module is built forces a rebuild.
-for _dtype in WARP_SCALAR:
-    _callables(_dtype)
+_volumes = _energy.per_item_terms(
+    _energy.energy_family(_forward_kernel, _types, outputs=("volume", "reference_volume")),
+    _energy.energy_family(_adjoint_kernel, _types, outputs=_energy.GRADIENT_NAMES, accumulate=_energy.GRADIENT_NAMES),
+)
 
 
 @jax.jit
@@ -159,30 +116,7 @@ def face_volumes(points: jax.Array, reference_points: jax.Array, triangles: jax.
     once in reverse mode in both coordinate arrays; ``jit`` and ``vmap`` (sequential)
     compatible. Requires ``B, N, F > 0``.
     """
-    num_batch, num_points, _ = points.shape
-    indices = kernel_indices(triangles, num_points)
-    volume, reference_volume = _volumes(flat_vectors(points), flat_vectors(reference_points), indices, jax.lax.stop_gradient(origins))
+    num_batch = points.shape[0]
+    extras = (jax.lax.stop_gradient(origins),)
+    volume, reference_volume = _volumes(*_energy.kernel_inputs(points, reference_points, triangles), extras, num_batch, ())
     return volume.reshape(num_batch, -1), reference_volume.reshape(num_batch, -1)
-
-
-@jax.custom_vjp
-def _volumes(points, reference, triangles, origins):
-    return _volumes_fwd(points, reference, triangles, origins)[0]
-
-
-def _volumes_fwd(points, reference, triangles, origins):
-    forward, _ = _callables(points.dtype)
-    size = (origins.shape[0] * triangles.shape[0],)
-    outputs = forward(points, reference, triangles, origins, output_dims={"volume": size, "reference_volume": size})
-    return tuple(outputs), (points, reference, triangles, origins)
-
-
-def _volumes_bwd(residuals, cotangents):
-    points, reference, triangles, origins = residuals
-    _, adjoint = _callables(points.dtype)
-    dims = {"points_bar": points.shape[:1], "reference_bar": points.shape[:1]}
-    points_bar, reference_bar = adjoint(points, reference, triangles, origins, *cotangents, output_dims=dims)
-    return points_bar, reference_bar, None, jnp.zeros_like(origins)
-
-
-_volumes.defvjp(_volumes_fwd, _volumes_bwd)

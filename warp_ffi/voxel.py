@@ -32,13 +32,12 @@ with ``support_winding_number=True``): it varies continuously off the surface, s
 centre and every sample is queried.
 """
 
-import functools
-
 import jax
+import jax.numpy as jnp
 
-from ._kernels import launch_in_chunks
-from ._kernels import warp as wp
-from .bvh import build_mesh
+from ._grid import mesh_in_call
+from ._wrap import CallableFamily, launch_in_chunks
+from ._wrap import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
@@ -194,15 +193,9 @@ def _crossing_fraction(
 
 @wp.kernel
 def _mark_kernel(
-    vertices: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    params: wp.array(dtype=wp.float32),
-    nx: int,
-    ny: int,
-    nz: int,
-    offset: int,
-    marked: wp.array(dtype=wp.int32),
-):
+    vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), params: wp.array(dtype=wp.float32), nx: int, ny: int,
+    nz: int, offset: int, marked: wp.array(dtype=wp.int32),
+):  # fmt: skip
     _b, item = wp.tid()
     f = item + offset
     a = vertices[indices[3 * f]]
@@ -229,20 +222,10 @@ def _mark_kernel(
 
 @wp.kernel
 def _row_kernel(
-    mesh: wp.uint64,
-    vertices: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    marked: wp.array(dtype=wp.int32),
-    params: wp.array(dtype=wp.float32),
-    nx: int,
-    ny: int,
-    num_samples: int,
-    strata: int,
-    seed: wp.uint32,
-    open_mesh: int,
-    offset: int,
-    fractions: wp.array(dtype=wp.float32),
-):
+    mesh: wp.uint64, vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), marked: wp.array(dtype=wp.int32),
+    params: wp.array(dtype=wp.float32), nx: int, ny: int, num_samples: int, strata: int, seed: wp.uint32, open_mesh: int,
+    offset: int, fractions: wp.array(dtype=wp.float32),
+):  # fmt: skip
     _b, item = wp.tid()
     row = item + offset
     j = row % ny
@@ -283,43 +266,30 @@ def _row_kernel(
         fractions[voxel] = fraction
 
 
-@functools.cache
-def _callable(open_mesh: bool):
-    def fractions_fn(
-        vertices: wp.array(dtype=wp.vec3),
-        indices: wp.array(dtype=wp.int32),
-        params: wp.array(dtype=wp.float32),
-        nx: int,
-        ny: int,
-        nz: int,
-        num_samples: int,
-        strata: int,
-        seed: int,
-        fractions: wp.array(dtype=wp.float32),
-    ):
-        device = fractions.device
-        mesh = build_mesh(vertices, indices, winding_number=open_mesh, device=device)
-        marked = wp.zeros(nx * ny * nz, dtype=wp.int32, device=device)
-        launch_in_chunks(_mark_kernel, 1, indices.shape[0] // 3, [vertices, indices, params, nx, ny, nz], [marked])
-        inputs = [mesh.id, vertices, indices, marked, params, nx, ny, num_samples, strata, wp.uint32(seed % 2**32), int(open_mesh)]
-        launch_in_chunks(_row_kernel, 1, ny * nz, inputs, [fractions], min_chunk=1)
-        if not device.is_cpu:
-            # The mesh and the marks are freed on return; the launches must be finished by then.
-            wp.synchronize_stream(wp.get_stream(device))
+def _fraction_types(scalar, open_mesh: bool) -> dict:
+    # The BVH is float32 (Warp's meshes are), whatever the working dtype: no per-dtype types.
+    return {"vertices": wp.array(dtype=wp.vec3), "indices": wp.array(dtype=wp.int32), "params": wp.array(dtype=wp.float32),
+            "nx": int, "ny": int, "nz": int, "num_samples": int, "strata": int, "seed": int, "fractions": wp.array(dtype=wp.float32)}  # fmt: skip
 
-    fractions_fn.__module__ = __name__
-    return wp.jax_callable(fractions_fn, num_outputs=1, vmap_method="sequential", graph_mode=wp.JaxCallableGraphMode.NONE)
+
+def _fractions(dtype, open_mesh: bool):
+    """The body: mark the voxels that triangles' boxes meet, then fill the grid row by row."""
+
+    def fractions_of(vertices, indices, params, nx, ny, nz, num_samples, strata, seed, fractions):
+        marked = wp.zeros(nx * ny * nz, dtype=wp.int32, device=fractions.device)
+        launch_in_chunks(_mark_kernel, 1, indices.shape[0] // 3, [vertices, indices, params, nx, ny, nz], [marked])
+        with mesh_in_call(vertices, indices, winding_number=open_mesh) as (mesh, _):
+            inputs = [mesh.id, vertices, indices, marked, params, nx, ny, num_samples, strata, wp.uint32(seed % 2**32), int(open_mesh)]
+            launch_in_chunks(_row_kernel, 1, ny * nz, inputs, [fractions], min_chunk=1)
+
+    return fractions_of
+
+
+_fractions_family = CallableFamily(_fractions, _fraction_types, outputs=("fractions",), builds=True, module=__name__)
 
 
 def voxel_fractions(
-    vertices: jax.Array,
-    indices: jax.Array,
-    params: jax.Array,
-    grid_dims: tuple[int, int, int],
-    num_samples: int,
-    strata: int,
-    seed: int,
-    open_mesh: bool,
+    vertices: jax.Array, indices: jax.Array, params: jax.Array, grid_dims: tuple[int, int, int], num_samples: int, strata: int, seed: int, open_mesh: bool
 ) -> jax.Array:
     """Fractions ``(nz, ny, nx)`` float32 (see the module docstring for the inputs).
 
@@ -328,7 +298,7 @@ def voxel_fractions(
     """
     nx, ny, nz = grid_dims
     seed = (seed % 2**32 + 2**31) % 2**32 - 2**31  # FFI attributes are int32; the kernel reads it back as uint32
-    (fractions,) = _callable(bool(open_mesh))(
-        vertices, indices, params, nx, ny, nz, num_samples, strata, seed, output_dims={"fractions": (nx * ny * nz,)}
+    (fractions,) = _fractions_family(jnp.float32, bool(open_mesh))(
+        vertices, indices, params, nx, ny, nz, num_samples, strata, seed, shapes={"fractions": (nx * ny * nz,)}
     )
     return fractions.reshape(nz, ny, nx)

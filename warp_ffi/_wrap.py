@@ -1,0 +1,405 @@
+"""The one way to expose Warp kernels to JAX: kernel families, CPU launches, adjoint pairing.
+
+* :class:`Overloads`: the float32 and float64 overloads of one generic kernel (element types
+  ``typing.Any``), registered when the family is declared. Each overload registered after a
+  Warp module is built changes the module's hash and recompiles it (seconds), so every overload
+  a family will use is registered up front.
+* :class:`KernelFamily`: one kernel as JAX functions, declared once with its named outputs and
+  made per dtype on first use. A *single* family is ``warp.jax_kernel`` (one launch over the
+  launch dims); a *chunked* family is ``warp.jax_callable`` whose CPU launch is split over the
+  cores (:func:`launch_in_chunks`). :class:`CallableFamily` is the same for a Python body that
+  launches several kernels or builds a structure in the call.
+* :func:`with_adjoint`: a forward call and its adjoint kernels as one ``jax.custom_vjp``.
+
+Every family uses ``vmap_method="sequential"`` unless told otherwise: our kernels gather across
+points and controls, where Warp's default broadcast rule would be silently wrong. Outputs that
+a kernel adds into (adjoint scatters) are passed as in/out buffers that the call fills with
+``jnp.zeros``: FFI output buffers are not zeroed.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import re
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import warp
+
+# Warp 1.19 ignores ``config.quiet``: the log level keeps the init banner and module-load
+# messages off stdout (they would break doctests and pollute benchmark output).
+warp.config.quiet = True
+warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
+warp.init()
+
+WARP_SCALAR = {jnp.dtype(jnp.float32): warp.float32, jnp.dtype(jnp.float64): warp.float64}
+
+
+def vectors(scalar, length: int = 3, ndim: int = 1):
+    """The Warp type of an array of ``length``-vectors of ``scalar``."""
+    return warp.array(dtype=warp.types.vector(length, scalar), ndim=ndim)
+
+
+def scalars(scalar, ndim: int = 1):
+    """The Warp type of an array of ``scalar``."""
+    return warp.array(dtype=scalar, ndim=ndim)
+
+
+# ---------------------------------------------------------------------------------------------
+# Threaded CPU launches. Warp runs a CPU launch on one thread; kernels that take an ``offset``
+# argument can be launched over disjoint chunks of their item axis from a thread pool instead.
+
+MIN_CHUNK = 4096  # items per CPU launch chunk: smaller chunks cost more in launch overhead
+
+
+def cpu_threads() -> int:
+    """Worker threads for CPU launches (``GEOMJAX_WARP_CPU_THREADS`` overrides the CPU count)."""
+    env = os.environ.get("GEOMJAX_WARP_CPU_THREADS")
+    if env:
+        return max(1, int(env))
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+@functools.cache
+def _pool(workers: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="geomjax-warp")
+
+
+def launch_in_chunks(kernel, num_batch: int, num_items: int, inputs: list, outputs: list, accumulated=(), *, min_chunk: int = MIN_CHUNK):
+    """Launch ``kernel`` over ``(num_batch, num_items)``, in parallel chunks of items on CPU.
+
+    The kernel's last input is an ``offset`` added to its item index; ``inputs`` end just before
+    it. ``accumulated`` lists the positions in ``outputs`` that the kernel adds into (they hold
+    zeros, or whatever is to be added to): on CPU each further worker adds into a private zeroed
+    copy, summed in at the end, because Warp's CPU atomics are not thread-safe. On CUDA it is one
+    launch over all items.
+    """
+    device = outputs[0].device
+    workers = cpu_threads() if device.is_cpu else 1
+    num_chunks = min(4 * workers, max(1, num_items // min_chunk))
+    if workers == 1 or num_chunks == 1:
+        warp.launch(kernel, dim=(num_batch, num_items), inputs=[*inputs, 0], outputs=outputs, device=device)
+        return
+    workers = min(workers, num_chunks)
+    bounds = [round(c * num_items / num_chunks) for c in range(num_chunks + 1)]
+    private = [outputs]
+    for _ in range(1, workers):
+        copy = list(outputs)
+        for k in accumulated:
+            copy[k] = warp.zeros_like(outputs[k])
+        private.append(copy)
+
+    def work(w):
+        # Contiguous chunks (rather than interleaved items) keep each worker's data in its cache.
+        for c in range(w, num_chunks, workers):
+            start, stop = bounds[c], bounds[c + 1]
+            warp.launch(kernel, dim=(num_batch, stop - start), inputs=[*inputs, start], outputs=private[w], device=device)
+
+    futures = []
+    for w in range(workers):
+        try:
+            futures.append(_pool(workers).submit(work, w))
+        except RuntimeError:
+            # The interpreter is exiting (the pool takes no more work) while JAX still runs a
+            # pending computation, e.g. a script that ends without blocking on a result.
+            work(w)
+    for future in futures:
+        future.result()
+    for k in accumulated:
+        total = outputs[k].numpy()
+        for copy in private[1:]:
+            np.add(total, copy[k].numpy(), out=total)
+
+
+# ---------------------------------------------------------------------------------------------
+# Families.
+
+
+class _PerVariant:
+    """Made once per variant, a dtype (float32 or float64) and static parameters: ``self(dtype, *params)``."""
+
+    def __init__(self):
+        self._made = {}
+
+    def __call__(self, dtype, *params):
+        key = (jnp.dtype(dtype), *params)
+        if key not in self._made:
+            self._made[key] = self._make(*key)
+        return self._made[key]
+
+    def _make(self, dtype, *params):  # pragma: no cover - every subclass defines it
+        raise NotImplementedError
+
+
+class Overloads(_PerVariant):
+    """The per-dtype overloads of one Warp kernel.
+
+    Args:
+        kernel: a ``@warp.kernel``; a generic one (float element types ``Any``) is overloaded,
+            a concrete one is used for every dtype.
+        types: ``types(scalar, *params)`` maps the Warp scalar (``warp.float32`` or
+            ``warp.float64``) and the family's static parameters to the concrete types of the
+            kernel's generic arguments, by name; the kernel's own annotations give the rest.
+            Names the kernel does not have are ignored, so one vocabulary can serve a module.
+        variants: the parameter tuples whose overloads are registered now, for both dtypes.
+    """
+
+    def __init__(self, kernel, types: Callable[..., dict] | None = None, *, variants: Sequence[tuple] = ((),)):
+        super().__init__()
+        self.kernel = kernel
+        self._types = types
+        for params in variants:
+            for dtype in WARP_SCALAR:
+                self(dtype, *params)
+
+    def _make(self, dtype, *params):
+        if not self.kernel.is_generic:
+            return self.kernel
+        types = self._types(WARP_SCALAR[dtype], *params)
+        return warp.overload(self.kernel, {name: t for name, t in types.items() if name in self.kernel.arg_indices})
+
+
+def _ffi_function(name: str, arg_types: dict, body: Callable, module: str) -> Callable:
+    """A Python function ``name(<arg_types' names>)`` annotated with ``arg_types`` that calls ``body``.
+
+    ``warp.jax_callable`` reads the FFI arguments (names, Warp types, which ones are static
+    scalars) from its function's signature and annotations. Ours depend on the dtype, so no
+    ``def`` in the source can carry them; generating the ``def`` here gives an ordinary function
+    that ``inspect`` reads like a hand-written one (rather than a ``*args`` function with its
+    ``__signature__`` and ``__annotations__`` patched, as Warp's own ``jax_kernel`` does).
+    ``module`` becomes its ``__module__``: Warp loads that module's kernels before the call
+    (graph capture cannot load a module mid-call).
+    """
+    name = re.sub(r"\W", "_", name)
+    parameters = ", ".join(f"{arg}: _types[{arg!r}]" for arg in arg_types)
+    source = f"def {name}({parameters}) -> None:\n    _body({', '.join(arg_types)})\n"
+    namespace = {"__name__": module, "_types": dict(arg_types), "_body": body}
+    exec(compile(source, f"<warp_ffi FFI function {name}>", "exec", dont_inherit=True), namespace)  # noqa: S102
+    return namespace[name]
+
+
+def _jax_dtype(arg_type):
+    element = arg_type.dtype
+    return warp.dtype_to_jax(getattr(element, "_wp_scalar_type_", element))
+
+
+def _full_shape(arg_type, shape) -> tuple:
+    """The JAX shape of a Warp array argument of ``arg_type`` with Warp shape ``shape``."""
+    return (*shape, *getattr(arg_type.dtype, "_shape_", ()))
+
+
+class _Call:
+    """One wrapped variant of a family: ``call(*inputs, launch=..., shapes=...)``."""
+
+    def __init__(self, wrapped, arg_types: dict, outputs: tuple, accumulate: tuple, launch_style: str):
+        self._wrapped = wrapped
+        self._arg_types = arg_types
+        self._outputs = outputs
+        self._accumulate = accumulate
+        self._style = launch_style
+
+    def __call__(self, *inputs, launch=None, shapes: dict):
+        """The outputs (a tuple, in declared order) for ``inputs``.
+
+        Args:
+            inputs: the family's input arguments in order (arrays and static scalars).
+            launch: the launch dims: any shape for a single family, ``(num_batch, num_items)``
+                for a chunked one, unused by a callable family.
+            shapes: the Warp shape of every output by name (for vector arrays, without the
+                vector length).
+        """
+        zeros = [jnp.zeros(_full_shape(self._arg_types[n], shapes[n]), _jax_dtype(self._arg_types[n])) for n in self._accumulate]
+        output_dims = {name: shapes[name] for name in self._outputs if name not in self._accumulate}
+        if self._style == "single":
+            results = self._wrapped(*inputs, *zeros, launch_dims=launch, output_dims=output_dims)
+        elif self._style == "chunked":
+            results = self._wrapped(*launch, *inputs, *zeros, output_dims=output_dims)
+        else:
+            results = self._wrapped(*inputs, *zeros, output_dims=output_dims)
+        # The FFI returns the in/out buffers first.
+        by_name = dict(zip([*self._accumulate, *output_dims], results, strict=True))
+        return tuple(by_name[name] for name in self._outputs)
+
+
+def _ordered_for_ffi(arg_types: dict, outputs: tuple, accumulate: tuple) -> dict:
+    """``arg_types`` with the accumulated outputs first among the outputs (FFI in/out arguments
+    must precede pure outputs)."""
+    inputs = {name: t for name, t in arg_types.items() if name not in outputs}
+    ordered = [*accumulate, *(name for name in outputs if name not in accumulate)]
+    return {**inputs, **{name: arg_types[name] for name in ordered}}
+
+
+class KernelFamily(_PerVariant):
+    """One Warp kernel as JAX functions for float32 and float64, made per dtype on first use.
+
+    Args:
+        kernel, types, variants: as for :class:`Overloads`.
+        outputs: the names of the kernel's trailing output arguments.
+        accumulate: outputs the kernel adds into (atomics): in/out buffers zero-filled by the call.
+        chunked: launch through ``warp.jax_callable`` with the CPU launch split over the cores
+            (:func:`launch_in_chunks`). The kernel's ``offset`` argument, just before its
+            outputs, is supplied by the launcher; a call passes ``launch=(num_batch,
+            num_items)``. Otherwise ``warp.jax_kernel`` launches once over ``launch``.
+        balanced: for a chunked family whose items all cost about the same: one chunk per
+            thread (more chunks buy no balance and each launch costs tens of microseconds).
+        min_chunk: the fewest items per chunk of a chunked family that is not balanced.
+        vmap_method: as for ``warp.jax_kernel``.
+
+    Calling the family with a dtype (and static parameters) gives the JAX function:
+    ``family(dtype, *params)(*inputs, launch=..., shapes=...)`` returns the outputs as a tuple.
+    """
+
+    def __init__(
+        self,
+        kernel,
+        types: Callable[..., dict] | None = None,
+        *,
+        outputs: Sequence[str],
+        accumulate: Sequence[str] = (),
+        chunked: bool = False,
+        balanced: bool = False,
+        min_chunk: int = MIN_CHUNK,
+        variants: Sequence[tuple] = ((),),
+        vmap_method: str = "sequential",
+    ):
+        super().__init__()
+        self.overloads = Overloads(kernel, types, variants=variants)
+        self.outputs = tuple(outputs)
+        self._accumulate = tuple(name for name in self.outputs if name in accumulate)
+        self._chunked = chunked
+        self._balanced = balanced
+        self._min_chunk = min_chunk
+        self._vmap_method = vmap_method
+
+    def _make(self, dtype, *params) -> _Call:
+        kernel = self.overloads(dtype, *params)
+        arg_types = dict(kernel.adj.arg_types)
+        num_outputs = len(self.outputs)
+        if not self._chunked:
+            wrapped = warp.jax_kernel(kernel, num_outputs=num_outputs, in_out_argnames=list(self._accumulate) or None, vmap_method=self._vmap_method)
+            return _Call(wrapped, arg_types, self.outputs, self._accumulate, "single")
+        del arg_types["offset"]
+        ffi_types = _ordered_for_ffi(arg_types, self.outputs, self._accumulate)
+        names = list(ffi_types)
+        num_inputs = len(names) - num_outputs
+        # The kernel's outputs in its own order, taken from the FFI arguments, and which it adds into.
+        output_positions = [names.index(name) for name in self.outputs]
+        accumulated = [self.outputs.index(name) for name in self._accumulate]
+
+        def body(launch_batch, launch_items, *args):
+            min_chunk = max(MIN_CHUNK, launch_items // cpu_threads()) if self._balanced else self._min_chunk
+            outputs = [args[k] for k in output_positions]
+            launch_in_chunks(kernel, launch_batch, launch_items, list(args[:num_inputs]), outputs, accumulated, min_chunk=min_chunk)
+
+        function = _ffi_function(kernel.key, {"launch_batch": int, "launch_items": int, **ffi_types}, body, kernel.func.__module__)
+        wrapped = warp.jax_callable(function, num_outputs=num_outputs, in_out_argnames=list(self._accumulate) or None, vmap_method=self._vmap_method)
+        return _Call(wrapped, ffi_types, self.outputs, self._accumulate, "chunked")
+
+
+class CallableFamily(_PerVariant):
+    """A Python body that launches Warp kernels, as JAX functions made per dtype on first use.
+
+    Args:
+        make_body: ``make_body(dtype, *params)`` returns the body, a function of the Warp arrays
+            (and static scalars) named by ``types``.
+        types: ``types(scalar, *params)``: every argument's name and Warp type, in order,
+            outputs last.
+        outputs: the names of the trailing output arguments, or ``outputs(*params)``.
+        module: the ``__module__`` whose Warp kernels are loaded before the call.
+        builds: the body allocates (builds a structure in the call), so it cannot be captured
+            in a CUDA graph; or ``builds(*params)``.
+        vmap_method: as for ``warp.jax_callable``.
+
+    ``family(dtype, *params)(*inputs, shapes=...)`` returns the outputs as a tuple.
+    """
+
+    def __init__(
+        self,
+        make_body: Callable,
+        types: Callable[..., dict],
+        *,
+        outputs: Sequence[str] | Callable[..., Sequence[str]],
+        module: str,
+        builds: bool | Callable[..., bool] = False,
+        vmap_method: str = "sequential",
+    ):
+        super().__init__()
+        self._make_body = make_body
+        self._types = types
+        self._outputs = outputs if callable(outputs) else lambda *params: outputs
+        self._builds = builds if callable(builds) else lambda *params: builds
+        self._module = module
+        self._vmap_method = vmap_method
+
+    def _make(self, dtype, *params) -> _Call:
+        arg_types = self._types(WARP_SCALAR[dtype], *params)
+        outputs = tuple(self._outputs(*params))
+        function = _ffi_function(self._make_body.__name__, arg_types, self._make_body(dtype, *params), self._module)
+        graph_mode = warp.JaxCallableGraphMode.NONE if self._builds(*params) else warp.JaxCallableGraphMode.JAX
+        wrapped = warp.jax_callable(function, num_outputs=len(outputs), graph_mode=graph_mode, vmap_method=self._vmap_method)
+        return _Call(wrapped, arg_types, outputs, (), "callable")
+
+
+# ---------------------------------------------------------------------------------------------
+# Adjoints.
+
+
+def _zero_cotangent(value):
+    """Zero cotangents for a (pytree of) non-differentiated array(s): float0 for integers."""
+
+    def zero(leaf):
+        if jnp.issubdtype(leaf.dtype, jnp.inexact):
+            return jnp.zeros_like(leaf)
+        return np.zeros(leaf.shape, jax.dtypes.float0)
+
+    return jax.tree.map(zero, value)
+
+
+def with_adjoint(
+    forward: Callable, adjoint: Callable, *, primal: Callable | None = None, static_argnums: Sequence[int] = (), constant_argnums: Sequence[int] = ()
+) -> Callable:
+    """``forward`` as a ``jax.custom_vjp`` function whose reverse pass is ``adjoint``.
+
+    Args:
+        forward: ``forward(*args) -> (outputs, saved)``: the results, and what the reverse pass
+            needs besides the arguments (``()`` for nothing).
+        adjoint: ``adjoint(args, saved, cotangents)``: the cotangents of the differentiated
+            arguments (neither static nor constant), in argument order.
+        primal: ``primal(*args) -> outputs`` when the results alone cost less than ``forward``
+            (default: ``forward``'s results).
+        static_argnums: Python values (sizes, names), passed as they are.
+        constant_argnums: arrays that are not differentiated (topology, configuration): they
+            get zero cotangents, float0 for integer arrays.
+
+    The residuals are the arguments and ``saved``.
+    """
+    static_argnums = tuple(static_argnums)
+    constant_argnums = tuple(constant_argnums)
+
+    @functools.partial(jax.custom_vjp, nondiff_argnums=static_argnums)
+    def function(*args):
+        if primal is not None:
+            return primal(*args)
+        return forward(*args)[0]
+
+    def function_fwd(*args):
+        outputs, saved = forward(*args)
+        return outputs, ([a for k, a in enumerate(args) if k not in static_argnums], saved)
+
+    def function_bwd(*static_residuals_cotangents):
+        *static, (dynamic, saved), cotangents = static_residuals_cotangents
+        count = len(static) + len(dynamic)
+        static, dynamic = iter(static), iter(dynamic)
+        args = [next(static) if k in static_argnums else next(dynamic) for k in range(count)]
+        gradients = iter(adjoint(args, saved, cotangents))
+        return tuple(_zero_cotangent(args[k]) if k in constant_argnums else next(gradients) for k in range(count) if k not in static_argnums)
+
+    function.defvjp(function_fwd, function_bwd)
+    return function

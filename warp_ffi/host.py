@@ -1,0 +1,441 @@
+"""Host-side entry points: NumPy in, NumPy (or a prepared structure) out, run eagerly.
+
+Everything else in ``warp_ffi`` is a JAX function (JAX arrays in and out, traceable under
+``jit`` and ``vmap``). The functions here run eagerly instead, as plain Warp launches on
+``wp.array`` copies, because what they return is data dependent in size or is a structure that
+JAX calls then reuse:
+
+* Mesh preparation for the BVH searches (``warp_ffi.bvh`` re-exports these): :func:`closest_tree`
+  (the oriented-box tree as JAX arrays), :func:`mesh_handle` (a ``wp.Mesh`` as JAX
+  ``mesh_words``), :func:`refit_mesh`; ``warp_ffi._grid.build_mesh`` builds the ``wp.Mesh``.
+* Poisson-disk sampling (``warp_ffi.poisson`` re-exports these): :func:`reject_near_accepted`,
+  :func:`resolve_conflicts`, :func:`neighbour_lists` and :func:`eliminate`.
+* The clustering remesher's :func:`nearest_centroids` (re-exported by ``warp_ffi.remesh``).
+
+Inputs arrive validated (no checks here).
+
+Poisson-disk sampling. Candidate positions, radii and priorities, and the elimination weights,
+are computed by geomjax (shared with its JAX path); Warp does the neighbour searches and the
+sequential elimination.
+
+* Neighbour searches use Warp's ``wp.HashGrid`` with cells at least as wide as the largest
+  search radius (the caller picks twice as wide), so a query visits at most three cells per
+  axis. The table dimensions are clamped by the caller to the cells the points span, and grids
+  are cached per (dimensions, device, dtype): creating a 128^3 grid costs more than rebuilding
+  it. Queries run in cell order (:func:`cell_order`) so they walk the table nearly in sequence.
+  CPU launches are split over the cores with ``launch_in_chunks``; every kernel writes only its
+  own items, so no output is shared.
+* Conflict tests compare squared distances with the squared radius widened by a relative
+  ``widening`` (float32 rounding can then never accept a pair closer than the radius).
+* ``eliminate`` runs Yuksel's elimination one sample at a time with an indexed binary max-heap
+  on integer weights (ties: lowest index first), in one sequential CPU kernel.
+
+Nearest centroids. Each point looks for its nearest centroid (ties: the lowest centroid index)
+among the centroids in the grid cells within ``radius``. A found centroid closer than ``radius
+(1 - 2**-12)`` is the nearest of all centroids (every centroid outside the visited cells is
+farther than ``radius``, up to float32 rounding of the cell assignment, which the margin
+covers); otherwise the point scans all centroids. The answer is therefore always the global
+nearest centroid, and ``radius`` only sets the speed.
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+from typing import Any
+
+import jax
+import numpy as np
+
+from ._grid import mesh_words
+from ._obb_tree import TREE_ARRAYS, build_tree
+from ._wrap import WARP_SCALAR, Overloads, launch_in_chunks, vectors
+from ._wrap import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = [
+    "closest_tree", "mesh_handle", "refit_mesh",
+    "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
+    "nearest_centroids",
+]  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# Mesh preparation.
+
+
+def mesh_handle(mesh: wp.Mesh) -> jax.Array:
+    """The JAX ``mesh_words`` of ``mesh``: uint32 ``(2,)``, zero-copy, keeping ``mesh`` alive.
+
+    The words live in a Warp array that holds a reference to the mesh, shared with JAX without a
+    copy: the mesh lives as long as that buffer, and XLA keeps an input buffer alive until every
+    computation that reads it has finished, so a handle dropped while a dispatched computation
+    still uses it is never freed too early.
+    """
+    words = mesh_words(mesh)
+    words.geomjax_mesh = mesh  # the reference that ties the mesh's lifetime to the JAX buffer
+    handle = jax.dlpack.from_dlpack(words)
+    if handle.unsafe_buffer_pointer() != words.ptr:  # pragma: no cover - JAX copied: no keep-alive
+        raise RuntimeError("could not share the Warp mesh handle with JAX without a copy")
+    return handle
+
+
+def refit_mesh(mesh: wp.Mesh, vertices: np.ndarray) -> None:
+    """Move the mesh's vertices (float32 ``(V, 3)``) and refit its BVH in place (same id)."""
+    mesh.points.assign(wp.array(np.ascontiguousarray(vertices, np.float32), dtype=wp.vec3, device=mesh.device))
+    mesh.refit()
+
+
+def closest_tree(vertices, faces_flat, device) -> tuple:
+    """The oriented-box tree of a mesh as JAX arrays (``warp_ffi._obb_tree.TREE_ARRAYS`` order).
+
+    ``vertices``: float32 ``(V, 3)``, ``faces_flat``: int32 ``(3 F,)`` NumPy arrays; the arrays
+    are built on ``device`` and shared with JAX without a copy.
+    """
+    vertices = wp.array(np.ascontiguousarray(vertices, np.float32), dtype=wp.vec3, device=device)
+    faces_flat = wp.array(np.ascontiguousarray(faces_flat, np.int32), dtype=wp.int32, device=device)
+    arrays = build_tree(vertices, faces_flat)
+    return tuple(jax.dlpack.from_dlpack(arrays[name]) for name in TREE_ARRAYS)
+
+
+# ---------------------------------------------------------------------------------------------
+# Hash grids.
+
+# Grids are reused across calls; the lock keeps two Python threads from rebuilding one grid
+# while the other queries it.
+GRID_LOCK = threading.RLock()
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_grid(dims: tuple[int, int, int], device: str, dtype) -> wp.HashGrid:
+    return wp.HashGrid(*dims, device=device, dtype=dtype)
+
+
+def cell_order(points: np.ndarray, cell_width: float) -> np.ndarray:
+    """A permutation listing the points cell by cell (cache-friendly query and storage order)."""
+    cells = np.floor(points / cell_width).astype(np.int64)
+    cells -= cells.min(axis=0, initial=0)
+    span = cells.max(axis=0, initial=0) + 1
+    return np.argsort(cells[:, 0] + span[0] * (cells[:, 1] + span[1] * cells[:, 2]))
+
+
+def hash_grid(points: wp.array, cell_width: float, dims: tuple[int, int, int]) -> wp.HashGrid:
+    """A cached ``wp.HashGrid`` of ``dims`` rebuilt over ``points`` (call under ``GRID_LOCK``)."""
+    dtype = wp.float64 if points.dtype == wp.vec3d else wp.float32
+    grid = _cached_grid(tuple(int(d) for d in dims), str(points.device), dtype)
+    grid.build(points, cell_width)
+    return grid
+
+
+# ---------------------------------------------------------------------------------------------
+# Dart throwing.
+
+
+@wp.kernel
+def _reject_kernel(
+    grid: wp.uint64, accepted: wp.array(dtype=wp.vec3), candidates: wp.array(dtype=wp.vec3), radius: wp.array(dtype=wp.float32),
+    order: wp.array(dtype=wp.int32), widening: wp.float32, offset: wp.int32, alive: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    _, t = wp.tid()
+    i = order[t + offset]
+    p = candidates[i]
+    r = radius[i]
+    limit = r * r * widening
+    query = wp.hash_grid_query(grid, p, r)
+    j = int(0)
+    keep = int(1)
+    while wp.hash_grid_query_next(query, j):
+        d = accepted[j] - p
+        if wp.dot(d, d) < limit:
+            keep = 0
+            break
+    alive[i] = keep
+
+
+@wp.kernel
+def _conflict_kernel(
+    grid: wp.uint64, candidates: wp.array(dtype=wp.vec3), radius: wp.array(dtype=wp.float32), priority: wp.array(dtype=wp.uint32),
+    index: wp.array(dtype=wp.int32), widening: wp.float32, offset: wp.int32, keep: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    _, t = wp.tid()
+    i = t + offset
+    keep[i] = 0
+    p = candidates[i]
+    r = radius[i]
+    rank = priority[i]
+    own = index[i]
+    # A conflicting neighbour is within min(r, r_j) <= r, so querying with r finds all of them.
+    query = wp.hash_grid_query(grid, p, r)
+    j = int(0)
+    while wp.hash_grid_query_next(query, j):
+        if j == i:
+            continue
+        m = wp.min(r, radius[j])
+        d = candidates[j] - p
+        if wp.dot(d, d) < m * m * widening:
+            other = priority[j]
+            if other > rank or (other == rank and index[j] > own):
+                return
+    keep[i] = 1
+
+
+def reject_near_accepted(
+    accepted: np.ndarray, candidates: np.ndarray, radius: np.ndarray, cell_width: float,
+    dims: tuple[int, int, int], widening: float, device: str,
+) -> np.ndarray:  # fmt: skip
+    """``(B,)`` bool: candidates with no accepted sample within their own radius (widened)."""
+    num = candidates.shape[0]
+    if accepted.shape[0] == 0:
+        return np.ones(num, bool)
+    accepted_wp = wp.array(accepted, dtype=wp.vec3, device=device)
+    candidates_wp = wp.array(candidates, dtype=wp.vec3, device=device)
+    radius_wp = wp.array(radius, dtype=wp.float32, device=device)
+    # Queries in cell order walk the grid's table nearly sequentially.
+    order = wp.array(cell_order(candidates, cell_width).astype(np.int32), dtype=wp.int32, device=device)
+    alive = wp.empty(num, dtype=wp.int32, device=device)
+    with GRID_LOCK:
+        grid = hash_grid(accepted_wp, cell_width, dims)
+        inputs = [grid.id, accepted_wp, candidates_wp, radius_wp, order, widening]
+        launch_in_chunks(_reject_kernel, 1, num, inputs, [alive])
+    return alive.numpy().astype(bool)
+
+
+def resolve_conflicts(
+    candidates: np.ndarray, radius: np.ndarray, priority: np.ndarray, index: np.ndarray, cell_width: float,
+    dims: tuple[int, int, int], widening: float, device: str,
+) -> np.ndarray:  # fmt: skip
+    """``(B,)`` bool: candidates with no conflicting candidate of higher priority.
+
+    Two candidates conflict when closer than ``min(r_i, r_j)`` (widened); of a conflicting pair
+    the higher ``priority`` survives (ties: the higher ``index``), so the survivors are
+    independent.
+    """
+    num = candidates.shape[0]
+    # Candidates are processed and stored cell by cell.
+    order = cell_order(candidates, cell_width)
+    candidates_wp = wp.array(candidates[order], dtype=wp.vec3, device=device)
+    radius_wp = wp.array(radius[order], dtype=wp.float32, device=device)
+    priority_wp = wp.array(priority[order], dtype=wp.uint32, device=device)
+    index_wp = wp.array(index[order].astype(np.int32), dtype=wp.int32, device=device)
+    keep = wp.empty(num, dtype=wp.int32, device=device)
+    with GRID_LOCK:
+        grid = hash_grid(candidates_wp, cell_width, dims)
+        inputs = [grid.id, candidates_wp, radius_wp, priority_wp, index_wp, widening]
+        launch_in_chunks(_conflict_kernel, 1, num, inputs, [keep])
+    kept = np.empty(num, bool)
+    kept[order] = keep.numpy().astype(bool)
+    return kept
+
+
+# ---------------------------------------------------------------------------------------------
+# Weighted sample elimination.
+
+
+@wp.kernel
+def _neighbours_kernel(
+    grid: wp.uint64, points: wp.array(dtype=wp.vec3), radius: wp.float32, limit: wp.float32, row_starts: wp.array(dtype=wp.int32),
+    capacity: wp.int32, offset: wp.int32, counts: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """Point ``i``'s neighbours (other points with squared distance below ``limit``).
+
+    They are counted, and the first ``capacity`` stored from ``row_starts[i]``, or from
+    ``i * capacity`` when ``row_starts`` is empty (a fixed-width table).
+    """
+    _, t = wp.tid()
+    i = t + offset
+    p = points[i]
+    query = wp.hash_grid_query(grid, p, radius)
+    j = int(0)
+    count = int(0)
+    base = i * capacity
+    if row_starts.shape[0] > 0:
+        base = row_starts[i]
+    while wp.hash_grid_query_next(query, j):
+        d = points[j] - p
+        if j != i and wp.dot(d, d) < limit:
+            if count < capacity:
+                columns[base + count] = j
+            count += 1
+    counts[i] = count
+
+
+def neighbour_lists(points: np.ndarray, radius: float, limit: float, capacity: int, cell_width: float, dims: tuple[int, int, int], device: str):
+    """CSR lists of the other points with squared distance below ``limit`` (``limit >= r^2``).
+
+    One pass stores up to ``capacity`` neighbours per point; only when some point has more does
+    a second pass fill exact rows. Returns ``(row_offsets (P + 1,) int64, columns (nnz,)
+    int32)``, each row in grid order. Points listed cell by cell (see :func:`cell_order`) run
+    several times faster: queries then walk the grid's table and the point array in order.
+    """
+    num = points.shape[0]
+    points_wp = wp.array(points, dtype=wp.vec3, device=device)
+    counts = wp.empty(num, dtype=wp.int32, device=device)
+    slots = wp.empty(num * capacity, dtype=wp.int32, device=device)
+    fixed_width = wp.empty(0, dtype=wp.int32, device=device)
+    with GRID_LOCK:
+        grid = hash_grid(points_wp, cell_width, dims)
+        launch_in_chunks(_neighbours_kernel, 1, num, [grid.id, points_wp, radius, limit, fixed_width, capacity], [counts, slots])
+        degree = counts.numpy()
+        row_offsets = np.zeros(num + 1, np.int64)
+        np.cumsum(degree, out=row_offsets[1:])
+        if row_offsets[-1] >= 2**31:
+            raise ValueError(f"{row_offsets[-1]} neighbour pairs are more than int32 indices allow")
+        if degree.max(initial=0) <= capacity:
+            table = slots.numpy().reshape(num, capacity)
+            return row_offsets, table[np.arange(capacity)[None, :] < degree[:, None]]
+        columns = wp.empty(int(row_offsets[-1]), dtype=wp.int32, device=device)
+        starts = wp.array(row_offsets[:-1].astype(np.int32), dtype=wp.int32, device=device)
+        inputs = [grid.id, points_wp, radius, limit, starts, int(degree.max())]
+        launch_in_chunks(_neighbours_kernel, 1, num, inputs, [counts, columns])
+    return row_offsets, columns.numpy()
+
+
+@wp.func
+def _ranks_above(weight_a: wp.int32, a: wp.int32, weight_b: wp.int32, b: wp.int32):
+    """Heap order: the larger weight first, ties to the lower index (``argmax`` semantics)."""
+    return weight_a > weight_b or (weight_a == weight_b and a < b)
+
+
+@wp.func
+def _sift_down(
+    heap: wp.array(dtype=wp.int32), position: wp.array(dtype=wp.int32), weight: wp.array(dtype=wp.int32), start: wp.int32,
+    size: wp.int32,
+):  # fmt: skip
+    i = start
+    item = heap[i]
+    item_weight = weight[item]
+    while 2 * i + 1 < size:
+        child = 2 * i + 1
+        best = heap[child]
+        if child + 1 < size:
+            right = heap[child + 1]
+            if _ranks_above(weight[right], right, weight[best], best):
+                child = child + 1
+                best = right
+        if not _ranks_above(weight[best], best, item_weight, item):
+            break
+        heap[i] = best
+        position[best] = i
+        i = child
+    heap[i] = item
+    position[item] = i
+
+
+@wp.kernel
+def _eliminate_kernel(
+    row_offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), pair_weight: wp.array(dtype=wp.int32),
+    target: wp.int32, weight: wp.array(dtype=wp.int32), heap: wp.array(dtype=wp.int32), position: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    size = heap.shape[0]
+    for k in range(size):
+        heap[k] = k
+        position[k] = k
+    k = size // 2 - 1
+    while k >= 0:
+        _sift_down(heap, position, weight, k, size)
+        k -= 1
+    while size > target:
+        top = heap[0]
+        size -= 1
+        position[top] = -1
+        if size > 0:
+            last = heap[size]
+            heap[0] = last
+            position[last] = 0
+            _sift_down(heap, position, weight, 0, size)
+        for e in range(row_offsets[top], row_offsets[top + 1]):
+            j = columns[e]
+            at = position[j]
+            if at >= 0 and pair_weight[e] > 0:
+                # A smaller weight can only move an entry down a max-heap.
+                weight[j] = weight[j] - pair_weight[e]
+                _sift_down(heap, position, weight, at, size)
+
+
+def eliminate(row_offsets: np.ndarray, columns: np.ndarray, pair_weight: np.ndarray, weight: np.ndarray, target: int) -> np.ndarray:
+    """Exact one-at-a-time elimination down to ``target`` samples: ``(P,)`` bool survivors.
+
+    Repeatedly removes the sample of largest ``weight`` (ties: lowest index) and subtracts its
+    ``pair_weight`` from each surviving neighbour. Integer weights make every update exact. Runs
+    on the CPU in one thread (the algorithm is sequential; a single GPU thread is far slower).
+    """
+    num = weight.shape[0]
+    device = "cpu"
+    heap = wp.empty(num, dtype=wp.int32, device=device)
+    position = wp.empty(num, dtype=wp.int32, device=device)
+    inputs = [
+        wp.array(row_offsets.astype(np.int32), dtype=wp.int32, device=device),
+        wp.array(columns.astype(np.int32), dtype=wp.int32, device=device),
+        wp.array(pair_weight.astype(np.int32), dtype=wp.int32, device=device),
+        int(target),
+    ]
+    weight_wp = wp.array(weight.astype(np.int32), dtype=wp.int32, device=device)
+    wp.launch(_eliminate_kernel, dim=1, inputs=inputs, outputs=[weight_wp, heap, position], device=device)
+    return position.numpy() >= 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Nearest centroids.
+
+ACCEPT_MARGIN = 1.0 - 2.0**-12
+
+
+@wp.func
+def _closer(d2: Any, j: int, best_d2: Any, best: int):
+    return d2 < best_d2 or (d2 == best_d2 and j < best)
+
+
+@wp.kernel
+def _nearest_centroid_kernel(
+    grid: wp.uint64, points: wp.array(dtype=Any), centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), offset: wp.int32,
+    labels: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    _, t = wp.tid()
+    i = t + offset
+    p = points[i]
+    radius = params[0]
+    accept = params[1]
+    best = int(-1)
+    best_d2 = radius * radius
+    query = wp.hash_grid_query(grid, p, radius)
+    j = int(0)
+    while wp.hash_grid_query_next(query, j):
+        d = centroids[j] - p
+        d2 = wp.dot(d, d)
+        if best < 0 or _closer(d2, j, best_d2, best):
+            best = j
+            best_d2 = d2
+    if best < 0 or best_d2 >= accept * accept:
+        best = int(0)
+        d = centroids[0] - p
+        best_d2 = wp.dot(d, d)
+        for k in range(1, centroids.shape[0]):
+            d = centroids[k] - p
+            d2 = wp.dot(d, d)
+            if _closer(d2, k, best_d2, best):
+                best = k
+                best_d2 = d2
+    labels[i] = best
+
+
+_nearest_centroid = Overloads(_nearest_centroid_kernel, lambda s: {"points": vectors(s), "centroids": vectors(s), "params": wp.array(dtype=s)})
+
+
+def nearest_centroids(points: np.ndarray, centroids: np.ndarray, radius: float, cell_width: float, dims: tuple[int, int, int], device: str) -> np.ndarray:
+    """``(N,)`` int32: index of the nearest centroid of each point (ties: lowest index).
+
+    ``points`` and ``centroids`` share one float dtype (float32 or float64); centroids are
+    bucketed in cells of ``cell_width >= radius``.
+    """
+    dtype = np.dtype(points.dtype)
+    scalar = WARP_SCALAR[dtype]
+    vec = wp.vec3d if scalar == wp.float64 else wp.vec3f  # the types wp.HashGrid accepts
+    points_wp = wp.array(points, dtype=vec, device=device)
+    centroids_wp = wp.array(centroids, dtype=vec, device=device)
+    params = wp.array(np.array([radius, radius * ACCEPT_MARGIN], dtype), dtype=scalar, device=device)
+    labels = wp.empty(points.shape[0], dtype=wp.int32, device=device)
+    with GRID_LOCK:
+        grid = hash_grid(centroids_wp, cell_width, dims)
+        launch_in_chunks(_nearest_centroid(dtype), 1, points.shape[0], [grid.id, points_wp, centroids_wp, params], [labels])
+    return labels.numpy()
