@@ -41,7 +41,7 @@ jax.config.update("jax_enable_x64", True)
 
 from geomjax import icosphere, mesh_poisson_disk_sample, remeshing  # noqa: E402
 from geomjax.remesh.clustering import remesh_with_sources  # noqa: E402
-from geomjax.sample import quality  # noqa: E402
+import _quality as quality  # noqa: E402
 
 REMESH_TARGET_RATIO = 5.0
 

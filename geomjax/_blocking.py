@@ -24,12 +24,7 @@ def query_block_size(num_queries: int, bytes_per_query: int, *, budget_bytes: in
     return int(min(max(num_queries, 1), block))
 
 
-def map_query_blocks(
-    field_fn: Callable[..., jax.Array],
-    queries: tuple[jax.Array, ...],
-    *,
-    block_size: int,
-) -> jax.Array:
+def map_query_blocks(field_fn: Callable[..., jax.Array], queries: tuple[jax.Array, ...], *, block_size: int) -> jax.Array:
     """Apply ``field_fn`` to blocks of the query arrays and concatenate the results.
 
     Args:

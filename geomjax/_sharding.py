@@ -48,14 +48,7 @@ def _mesh_of(arrays):
     return None
 
 
-def map_local_shards(
-    fn: Callable,
-    args: Sequence,
-    shared_axes: Sequence[int],
-    *,
-    out_axes: int,
-    check_vma: bool = True,
-):
+def map_local_shards(fn: Callable, args: Sequence, shared_axes: Sequence[int], *, out_axes: int, check_vma: bool = True):
     """``fn(*args)``, run once per shard of the sharded leading axes when any are explicit.
 
     Args:
@@ -122,6 +115,4 @@ def map_local_shards(
             full[i] = jax.lax.pcast(a, axes, to="varying") if axes and check_vma else a
         return fn(*full)
 
-    return jax.shard_map(local, mesh=mesh, in_specs=tuple(in_specs), out_specs=spec(out_axes), axis_names=frozenset(used), check_vma=check_vma)(
-        *sharded_args
-    )
+    return jax.shard_map(local, mesh=mesh, in_specs=tuple(in_specs), out_specs=spec(out_axes), axis_names=frozenset(used), check_vma=check_vma)(*sharded_args)

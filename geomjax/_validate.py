@@ -16,15 +16,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._errors import runtime_check
+
 FLOAT_DTYPES = (jnp.dtype(jnp.float32), jnp.dtype(jnp.float64))
 INDEX_DTYPES = (jnp.dtype(jnp.int32), jnp.dtype(jnp.int64))
 
 
 def is_array(x) -> bool:
     """Whether ``x`` is an array (JAX, NumPy or array-like with shape and dtype), not a scalar."""
-    return isinstance(x, (jax.Array, np.ndarray)) or (
-        hasattr(x, "shape") and hasattr(x, "dtype") and not isinstance(x, (numbers.Number, np.generic))
-    )
+    return isinstance(x, (jax.Array, np.ndarray)) or (hasattr(x, "shape") and hasattr(x, "dtype") and not isinstance(x, (numbers.Number, np.generic)))
+
+
+def _as_array_of(name: str, x, dtypes: tuple, kind: str) -> jax.Array:
+    article = "an" if kind[0] in "aeiou" else "a"
+    if not is_array(x):
+        raise TypeError(f"{name} must be {article} {kind} array, got {type(x).__name__}")
+    dtype = jnp.dtype(x.dtype)
+    if dtype not in dtypes:
+        raise TypeError(f"{name} must have dtype {kind}, got {dtype}")
+    return jnp.asarray(x)
 
 
 def as_float_array(name: str, x) -> jax.Array:
@@ -33,31 +43,18 @@ def as_float_array(name: str, x) -> jax.Array:
     Raises:
         TypeError: ``x`` is not an array, or its dtype is not float32 or float64.
     """
-    if not is_array(x):
-        raise TypeError(f"{name} must be a float32 or float64 array, got {type(x).__name__}")
-    dtype = jnp.dtype(x.dtype)
-    if dtype not in FLOAT_DTYPES:
-        raise TypeError(f"{name} must have dtype float32 or float64, got {dtype}")
-    return jnp.asarray(x)
+    return _as_array_of(name, x, FLOAT_DTYPES, "float32 or float64")
 
 
 def as_index_array(name: str, x) -> jax.Array:
     """Return ``x`` as a JAX integer array after checking it is int32/int64."""
-    if not is_array(x):
-        raise TypeError(f"{name} must be an int32 or int64 array, got {type(x).__name__}")
-    dtype = jnp.dtype(x.dtype)
-    if dtype not in INDEX_DTYPES:
-        raise TypeError(f"{name} must have dtype int32 or int64, got {dtype}")
-    return jnp.asarray(x)
+    return _as_array_of(name, x, INDEX_DTYPES, "int32 or int64")
 
 
 def check_same_dtype(reference_name: str, reference: jax.Array, name: str, x: jax.Array) -> None:
     """Floating inputs of one call share a dtype: there is no implicit promotion."""
     if jnp.dtype(x.dtype) != jnp.dtype(reference.dtype):
-        raise TypeError(
-            f"{name} must have the same dtype as {reference_name} ({jnp.dtype(reference.dtype)}), "
-            f"got {jnp.dtype(x.dtype)}"
-        )
+        raise TypeError(f"{name} must have the same dtype as {reference_name} ({jnp.dtype(reference.dtype)}), got {jnp.dtype(x.dtype)}")
 
 
 def _device_set(x):
@@ -91,9 +88,7 @@ def check_coordinates(name: str, x, *, min_dims: int = 1) -> tuple[jax.Array, bo
     return x, x.ndim == 3
 
 
-def check_companion(
-    points_name: str, points: jax.Array, name: str, x, *, same_count: bool = False
-) -> jax.Array:
+def check_companion(points_name: str, points: jax.Array, name: str, x, *, same_count: bool = False) -> jax.Array:
     """Check a per-batch companion of ``points`` (controls, displacements) for alignment.
 
     Companions have the same rank as ``points`` (both unbatched or both batched, never broadcast),
@@ -104,19 +99,11 @@ def check_companion(
     check_same_dtype(points_name, points, name, x)
     check_same_device(points_name, points, name, x)
     if x.ndim != points.ndim:
-        raise ValueError(
-            f"{points_name} and {name} must both be unbatched or both be batched: got shapes "
-            f"{tuple(points.shape)} and {tuple(x.shape)}"
-        )
+        raise ValueError(f"{points_name} and {name} must both be unbatched or both be batched: got shapes {tuple(points.shape)} and {tuple(x.shape)}")
     if points.ndim == 3 and x.shape[0] != points.shape[0]:
-        raise ValueError(
-            f"{name} batch size {x.shape[0]} does not match {points_name} batch size {points.shape[0]} "
-            "(batches are aligned, not broadcast)"
-        )
+        raise ValueError(f"{name} batch size {x.shape[0]} does not match {points_name} batch size {points.shape[0]} (batches are aligned, not broadcast)")
     if x.shape[-1] != points.shape[-1]:
-        raise ValueError(
-            f"{name} must have {points.shape[-1]} coordinates per row like {points_name}, got shape {tuple(x.shape)}"
-        )
+        raise ValueError(f"{name} must have {points.shape[-1]} coordinates per row like {points_name}, got shape {tuple(x.shape)}")
     if same_count and x.shape != points.shape:
         raise ValueError(f"{name} must have exactly the shape of {points_name} {tuple(points.shape)}, got {tuple(x.shape)}")
     return x
@@ -150,22 +137,21 @@ def check_point_weights(point_weights, points: jax.Array) -> jax.Array | None:
             raise TypeError(f"floating point_weights must have the points dtype {jnp.dtype(points.dtype)}, got {dtype}")
     else:
         raise TypeError(f"point_weights must be bool or float32/float64, got {dtype}")
-    point_weights = jnp.asarray(point_weights)
-    check_same_device("points", points, "point_weights", point_weights)
+    return check_one_per_point("point_weights", point_weights, points, "weight")
+
+
+def check_one_per_point(name: str, x, points: jax.Array, entry: str) -> jax.Array:
+    """``x`` as a JAX array after checking its device and shape ``points.shape[:-1]`` (one
+    ``entry`` per point; no broadcasting, so a misaligned batch is an error, not a silent copy)."""
+    x = jnp.asarray(x)
+    check_same_device("points", points, name, x)
     expected = tuple(points.shape[:-1])
-    if tuple(point_weights.shape) != expected:
-        raise ValueError(f"point_weights must have shape {expected} (one weight per point, no broadcasting), got {tuple(point_weights.shape)}")
-    return point_weights
+    if tuple(x.shape) != expected:
+        raise ValueError(f"{name} must have shape {expected} (one {entry} per point, no broadcasting), got {tuple(x.shape)}")
+    return x
 
 
-def check_real_scalar(
-    name: str,
-    value,
-    dtype,
-    *,
-    positive: bool = False,
-    nonnegative: bool = False,
-) -> float:
+def check_real_scalar(name: str, value, dtype, *, positive: bool = False, nonnegative: bool = False) -> float:
     """Validate a Python real scalar option against the working ``dtype``.
 
     ``bool`` and non-real values are a ``TypeError``; NaN, infinity, values outside the dtype's
@@ -237,14 +223,42 @@ def check_integer(name: str, value, *, minimum: int) -> int:
     return value
 
 
+def require(x, predicate, message: str, error: type[Exception] = ValueError):
+    """``x`` after checking that ``predicate(x)`` holds (a bool or bool array, every element).
+
+    On concrete values the check runs now; on traced ones it is an ``equinox.error_if`` attached
+    to the returned value, raising ``error(message)`` when the program runs (``_errors.py``).
+    """
+    return runtime_check(x, jnp.logical_not(predicate(x)), message, error)
+
+
+def check_index_range(indices, num_points: int, message: str) -> jax.Array:
+    """``indices`` as int32 after checking that every value lies in ``[0, num_points)``.
+
+    ``message`` says what must hold (e.g. ``"op: faces indices must be in [0, 8)"``). Concrete
+    indices are checked now, and the error adds the values found. Traced ones get a run-time check
+    and are clamped meanwhile: a Warp kernel must never read out of bounds, even before the check
+    reports.
+    """
+    if not isinstance(indices, jax.core.Tracer):
+        check_host_index_range(np.asarray(indices), num_points, message)
+        return jnp.asarray(indices).astype(jnp.int32)
+    indices = require(indices, lambda i: jnp.all((i >= 0) & (i < num_points)), message)
+    return jnp.clip(indices, 0, max(num_points - 1, 0)).astype(jnp.int32)
+
+
+def check_host_index_range(indices: np.ndarray, num_points: int, message: str) -> None:
+    """The eager half of :func:`check_index_range`, for host (NumPy) indices."""
+    if indices.size and (indices.min() < 0 or indices.max() >= num_points):
+        raise ValueError(f"{message}, got values in [{indices.min()}, {indices.max()}]")
+
+
 # ---------------------------------------------------------------------------------------------
 # Eager host-side checks, for the ops whose output size depends on the data (sampling, remeshing).
 # Unlike everything above, these look at values: those ops run outside jit anyway.
 
 
-def check_host_surface(
-    op_name: str, mesh_vertices, mesh_indices, *, min_vertices: int = 1, flat_indices: bool = False
-) -> tuple[jax.Array, np.ndarray]:
+def check_host_surface(op_name: str, mesh_vertices, mesh_indices, *, min_vertices: int = 1, flat_indices: bool = False) -> tuple[jax.Array, np.ndarray]:
     """Finite ``(V, 3)`` vertices and in-range int64 host faces ``(F, 3)``, checked eagerly.
 
     ``flat_indices`` also accepts a flat ``(3 F,)`` index list (the reference's sampling layout).
@@ -254,9 +268,7 @@ def check_host_surface(
     if isinstance(vertices, jax.core.Tracer) or isinstance(mesh_indices, jax.core.Tracer):
         raise TypeError(f"{op_name} runs eagerly (its output size depends on the data): call it outside jax.jit")
     if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] < min_vertices:
-        raise ValueError(
-            f"mesh_vertices must have shape (V, 3) with V >= {min_vertices}, got {tuple(vertices.shape)}"
-        )
+        raise ValueError(f"mesh_vertices must have shape (V, 3) with V >= {min_vertices}, got {tuple(vertices.shape)}")
     if not is_array(mesh_indices):
         raise TypeError(f"mesh_indices must be an integer array, got {type(mesh_indices).__name__}")
     dtype = np.dtype(mesh_indices.dtype)
@@ -271,8 +283,7 @@ def check_host_surface(
         raise ValueError(f"mesh_indices must have shape {layouts} with F >= 1, got {tuple(host.shape)}")
     faces = host.reshape(-1, 3).astype(np.int64)
     num_vertices = vertices.shape[0]
-    if faces.min() < 0 or faces.max() >= num_vertices:
-        raise ValueError(f"mesh_indices must lie in [0, {num_vertices}), got values in [{faces.min()}, {faces.max()}]")
+    check_host_index_range(faces, num_vertices, f"mesh_indices must lie in [0, {num_vertices})")
     if not bool(jnp.all(jnp.isfinite(vertices))):
         raise ValueError("mesh_vertices must be finite")
     return vertices, faces

@@ -12,6 +12,8 @@ static fields by identity, never retraces.
 
 from __future__ import annotations
 
+import importlib
+import inspect
 import itertools
 from collections.abc import Callable, Mapping, Sequence
 
@@ -21,6 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ._errors import raises_documented_errors, runtime_check
+from ._registry import REGISTRY, OpDeclaration
 from ._validate import as_float_array, check_real_sequence, check_same_device, check_same_dtype, check_same_shape, is_array
 
 __all__ = ["Mesh", "Topology"]
@@ -193,221 +197,12 @@ class Mesh(eqx.Module):
         return eqx.tree_at(lambda mesh: mesh.points, self, points)
 
     # ----------------------------------------------------------------------------------------
-    # Deformation energies against this mesh as the reference configuration
+    # The energies (this mesh is the reference configuration) and the deformations (a new Mesh
+    # with moved points, the same topology object and the same data) are generated below the
+    # class from their registry declarations (``OpDeclaration.mesh_arguments``). Written by hand:
+    # the deformation whose lattice box is derived from the points, and remeshing.
 
-    def simplex_strain_energy(
-        self,
-        points: Float[Array, "num_points num_dims"],
-        *,
-        lame_lambda: float = 1.0,
-        shear_modulus: float = 1.0,
-        reduction: str = "sum",
-        implementation: str | None = None,
-    ) -> Float[Array, "..."]:
-        """St. Venant-Kirchhoff strain energy of ``points`` relative to this mesh.
-
-        Calls :func:`geomjax.energy.strain.simplex_strain_energy` with ``reference_points =
-        self.points`` and the cached cells; see it for the formula, options and backends.
-        ``points`` must be unbatched ``(N, D)`` with the shape and dtype of ``self.points``
-        (``ValueError`` / ``TypeError`` otherwise); ``vmap`` this method for a batch.
-        """
-        from .energy.strain import simplex_strain_energy
-
-        points = self._current_points(points)
-        return simplex_strain_energy(
-            points, self.points, self.cells, lame_lambda=lame_lambda, shear_modulus=shear_modulus,
-            reduction=reduction, implementation=implementation,
-        )
-
-    def simplex_measure_energy(
-        self,
-        points: Float[Array, "num_points num_dims"],
-        *,
-        target_ratio: float = 1.0,
-        reduction: str = "sum",
-        implementation: str | None = None,
-    ) -> Float[Array, "..."]:
-        """Per-cell measure-ratio energy of ``points`` relative to this mesh.
-
-        Calls :func:`geomjax.energy.measure.simplex_measure_energy` with the cached cells.
-        ``points`` must be unbatched with the shape and dtype of ``self.points``.
-        """
-        from .energy.measure import simplex_measure_energy
-
-        points = self._current_points(points)
-        return simplex_measure_energy(
-            points, self.points, self.cells, target_ratio=target_ratio, reduction=reduction, implementation=implementation
-        )
-
-    def total_measure_energy(
-        self,
-        points: Float[Array, "num_points num_dims"],
-        *,
-        target_ratio: float = 1.0,
-        reduction: str = "sum",
-        implementation: str | None = None,
-    ) -> Float[Array, "..."]:
-        """Total-measure energy of ``points`` relative to this mesh.
-
-        Calls :func:`geomjax.energy.total_measure.total_measure_energy` with the cached cells
-        (which must be non-empty there). ``points`` must be unbatched like ``self.points``.
-        """
-        from .energy.total_measure import total_measure_energy
-
-        points = self._current_points(points)
-        return total_measure_energy(
-            points, self.points, self.cells, target_ratio=target_ratio, reduction=reduction, implementation=implementation
-        )
-
-    def simplex_inversion_energy(
-        self,
-        points: Float[Array, "num_points num_dims"],
-        *,
-        minimum_jacobian: float = 0.1,
-        reduction: str = "sum",
-        implementation: str | None = None,
-    ) -> Float[Array, "..."]:
-        """Squared-hinge inversion energy of ``points`` relative to this mesh.
-
-        Calls :func:`geomjax.energy.inversion.simplex_inversion_energy` with the cached cells.
-
-        Raises:
-            ValueError: the cells are not full-dimensional (``n_manifold_dims != n_spatial_dims``),
-                or ``points`` differ in shape from ``self.points``.
-        """
-        from .energy.inversion import simplex_inversion_energy
-
-        if self.n_manifold_dims != self.n_spatial_dims:
-            raise ValueError(
-                "simplex_inversion_energy needs full-dimensional cells (n_manifold_dims == n_spatial_dims), got "
-                f"{SIMPLEX_NAMES[self.n_manifold_dims + 1]} in {self.n_spatial_dims}-D"
-            )
-        points = self._current_points(points)
-        return simplex_inversion_energy(
-            points, self.points, self.cells, minimum_jacobian=minimum_jacobian, reduction=reduction,
-            implementation=implementation,
-        )
-
-    def surface_bending_energy(
-        self,
-        points: Float[Array, "num_points 3"],
-        *,
-        reduction: str = "sum",
-        implementation: str | None = None,
-    ) -> Float[Array, "..."]:
-        """Dihedral bending energy of ``points`` relative to this triangle surface in 3-D.
-
-        Builds the interior hinges once (see :attr:`hinges`) and calls
-        :func:`geomjax.energy.bending.surface_bending_energy` with them.
-
-        Raises:
-            ValueError: not a triangle mesh in 3-D, a duplicate triangle, an edge with more than
-                two triangles, or ``points`` differing in shape from ``self.points``.
-        """
-        from .energy.bending import surface_bending_energy
-
-        self._require_triangles_in_3d("surface_bending_energy")
-        points = self._current_points(points)
-        return surface_bending_energy(points, self.points, self.hinges, reduction=reduction, implementation=implementation)
-
-    def closed_surface_volume_energy(
-        self,
-        points: Float[Array, "num_points 3"],
-        *,
-        target_ratio: float = 1.0,
-        reduction: str = "sum",
-        implementation: str | None = None,
-    ) -> Float[Array, "..."]:
-        """Enclosed-volume energy of ``points`` relative to this closed triangle surface in 3-D.
-
-        Checks once (and caches) the closed-surface contract that the tensor functional
-        :func:`geomjax.energy.volume.closed_surface_volume_energy` assumes: at least one
-        triangle, no duplicate triangle, every undirected edge in exactly two triangles that
-        traverse it in opposite directions (consistent orientation), and one edge-connected
-        component.
-
-        Raises:
-            ValueError: not a triangle mesh in 3-D, a broken rule of the contract (the message
-                names it), or ``points`` differing in shape from ``self.points``.
-        """
-        from .energy.volume import closed_surface_volume_energy
-
-        self._require_triangles_in_3d("closed_surface_volume_energy")
-        triangles = self.topology.closed_surface_triangles()
-        points = self._current_points(points)
-        return closed_surface_volume_energy(
-            points, self.points, triangles, target_ratio=target_ratio, reduction=reduction, implementation=implementation
-        )
-
-    # ----------------------------------------------------------------------------------------
-    # Deformations: a new Mesh with moved points, the same topology object and the same data
-
-    def displace(
-        self,
-        displacement: Float[Array, "num_points num_dims"] | str | tuple[str, ...],
-        *,
-        point_weights: Bool[Array, " num_points"] | Float[Array, " num_points"] | str | tuple[str, ...] | None = None,
-        implementation: str | None = None,
-    ) -> Mesh:
-        """Move the points by a dense displacement (:func:`geomjax.displace_points`).
-
-        ``displacement`` and ``point_weights`` may be arrays or ``point_data`` keys (a name or a
-        tuple path into nested data; a missing key is a ``KeyError`` listing the available ones).
-        """
-        from .deform.displace import displace_points
-
-        points = displace_points(
-            self.points, self._field("displacement", displacement),
-            point_weights=self._field("point_weights", point_weights), implementation=implementation,
-        )
-        return self.with_points(points)
-
-    def morph(
-        self,
-        control_points: Float[Array, "num_controls num_dims"],
-        control_displacements: Float[Array, "num_controls num_dims"],
-        *,
-        radius,
-        point_weights: Bool[Array, " num_points"] | Float[Array, " num_points"] | str | tuple[str, ...] | None = None,
-        kernel: str = "wendland_c2",
-        implementation: str | None = None,
-    ) -> Mesh:
-        """Compact Wendland-C2 morphing of the points (:func:`geomjax.morph_points`).
-
-        ``point_weights`` may be an array or a ``point_data`` key.
-        """
-        from .deform.morph import morph_points
-
-        points = morph_points(
-            self.points, control_points, control_displacements, radius=radius,
-            point_weights=self._field("point_weights", point_weights), kernel=kernel, implementation=implementation,
-        )
-        return self.with_points(points)
-
-    def radial_basis_function_deform(
-        self,
-        control_points: Float[Array, "num_controls num_dims"],
-        control_displacements: Float[Array, "num_controls num_dims"],
-        *,
-        kernel: str = "thin_plate_spline",
-        polynomial: bool = True,
-        smoothing: float = 0.0,
-        point_weights: Bool[Array, " num_points"] | Float[Array, " num_points"] | str | tuple[str, ...] | None = None,
-        implementation: str | None = None,
-    ) -> Mesh:
-        """Thin-plate-spline deformation of the points (:func:`geomjax.radial_basis_function_deform_points`).
-
-        ``point_weights`` may be an array or a ``point_data`` key.
-        """
-        from .deform.rbf import radial_basis_function_deform_points
-
-        points = radial_basis_function_deform_points(
-            self.points, control_points, control_displacements, kernel=kernel, polynomial=polynomial,
-            smoothing=smoothing, point_weights=self._field("point_weights", point_weights),
-            implementation=implementation,
-        )
-        return self.with_points(points)
-
+    @raises_documented_errors
     def free_form_deform(
         self,
         control_displacements: Float[Array, "*lattice_resolution num_dims"],
@@ -445,31 +240,13 @@ class Mesh(eqx.Module):
                 if extent is None:
                     extent = _checked_box_extent(jnp.max(box_points, axis=0) - self._box_vector("origin", origin))
         points = free_form_deform_points(
-            points, control_displacements, origin=origin, extent=extent, basis=basis,
-            point_weights=self._field("point_weights", point_weights), implementation=implementation,
-        )
-        return self.with_points(points)
-
-    def sobolev_deform(
-        self,
-        displacement: Float[Array, "num_points num_dims"] | str | tuple[str, ...],
-        *,
-        length_scale: float,
-        fixed_points: Bool[Array, " num_points"] | str | tuple[str, ...] | None = None,
-        max_iterations: int = 128,
-        tolerance: float | None = None,
-        implementation: str | None = None,
-    ) -> Mesh:
-        """Sobolev-smoothed displacement over this mesh's cells (``geomjax.sobolev_deform_points``).
-
-        ``displacement`` and ``fixed_points`` may be arrays or ``point_data`` keys.
-        """
-        from .deform.sobolev import sobolev_deform_points
-
-        points = sobolev_deform_points(
-            self.points, self.cells, self._field("displacement", displacement), length_scale=length_scale,
-            fixed_points=self._field("fixed_points", fixed_points), max_iterations=max_iterations,
-            tolerance=tolerance, implementation=implementation,
+            points,
+            control_displacements,
+            origin=origin,
+            extent=extent,
+            basis=basis,
+            point_weights=self._field("point_weights", point_weights),
+            implementation=implementation,
         )
         return self.with_points(points)
 
@@ -478,17 +255,8 @@ class Mesh(eqx.Module):
 
     def _current_points(self, points) -> jax.Array:
         if self.points.ndim != 2:
-            raise ValueError(
-                f"mesh.points are batched {tuple(self.points.shape)}; call the energy inside jax.vmap over the mesh"
-            )
+            raise ValueError(f"mesh.points are batched {tuple(self.points.shape)}; call the energy inside jax.vmap over the mesh")
         return check_same_shape("mesh.points", self.points, "points", points)
-
-    def _require_triangles_in_3d(self, op_name: str) -> None:
-        if self.n_manifold_dims != 2 or self.n_spatial_dims != 3:
-            raise ValueError(
-                f"{op_name} needs a triangle surface in 3-D, got {SIMPLEX_NAMES[self.n_manifold_dims + 1]} "
-                f"in {self.n_spatial_dims}-D"
-            )
 
     def _field(self, name: str, value):
         """Resolve a field argument given as an array or as a ``point_data`` key / tuple path."""
@@ -519,6 +287,7 @@ class Mesh(eqx.Module):
     # ----------------------------------------------------------------------------------------
     # Remeshing
 
+    @raises_documented_errors
     def remesh(
         self,
         n_clusters: int,
@@ -526,13 +295,7 @@ class Mesh(eqx.Module):
         point_data_keys: Sequence[str | tuple[str, ...]] = (),
         vertex_density: Float[Array, " num_points"] | str | tuple[str, ...] | None = None,
         resolution_field: Float[Array, " num_points"] | str | tuple[str, ...] | None = None,
-        max_iterations: int = 4,
-        search_radius_scale: float = 1.6,
-        voxel_width_scale: float = 1.15,
-        hash_grid_resolution: int = 128,
-        farthest_point_threshold: int = 256,
-        farthest_point_oversampling: int = 4,
-        implementation: str | None = None,
+        **remeshing_options,
     ) -> Mesh:
         """A new mesh of about ``n_clusters`` vertices by centroidal clustering (:func:`geomjax.remeshing`).
 
@@ -569,13 +332,12 @@ class Mesh(eqx.Module):
             >>> print(coarse.n_points <= 40, float(np.abs(coarse.point_data["z"] - coarse.points[:, 2]).max()) < 0.1)
             True True
         """
-        from .remesh.clustering import remesh_with_sources
+        from .remesh.clustering import remesh_options, remesh_with_sources
+
+        remeshing_options = remesh_options(remeshing_options, exclude=("vertex_density",))
 
         if self.n_manifold_dims != 2 or self.n_spatial_dims != 3:
-            raise NotImplementedError(
-                f"remesh needs a triangle surface in 3-D, got {SIMPLEX_NAMES[self.n_manifold_dims + 1]} in "
-                f"{self.n_spatial_dims}-D"
-            )
+            raise NotImplementedError(f"remesh needs a triangle surface in 3-D, got {SIMPLEX_NAMES[self.n_manifold_dims + 1]} in {self.n_spatial_dims}-D")
         if self.points.ndim != 2:
             raise ValueError(f"remesh needs unbatched points, got shape {tuple(self.points.shape)}")
         if vertex_density is not None and resolution_field is not None:
@@ -591,13 +353,7 @@ class Mesh(eqx.Module):
             if not jnp.issubdtype(values.dtype, jnp.floating):
                 raise TypeError(f"point_data[{key!r}] must be floating to be interpolated, got {values.dtype}")
             fields.append(((key,) if isinstance(key, str) else key, values))
-        result = remesh_with_sources(
-            self.points, self.topology.cells_host, n_clusters, max_iterations=max_iterations,
-            vertex_density=density, density_exponent=exponent, search_radius_scale=search_radius_scale,
-            voxel_width_scale=voxel_width_scale, hash_grid_resolution=hash_grid_resolution,
-            farthest_point_threshold=farthest_point_threshold,
-            farthest_point_oversampling=farthest_point_oversampling, implementation=implementation,
-        )  # fmt: skip
+        result = remesh_with_sources(self.points, self.topology.cells_host, n_clusters, vertex_density=density, density_exponent=exponent, **remeshing_options)
         corners = self.cells[result.source_faces]
         point_data: dict = {}
         for path, values in fields:
@@ -610,6 +366,114 @@ class Mesh(eqx.Module):
         return Mesh(result.vertices, np.asarray(result.faces), point_data=point_data)
 
 
+# --------------------------------------------------------------------------------------------
+# Methods generated from the registry: one per op declared with ``mesh_arguments``.
+
+_FROM_MESH: dict[str, Callable[[Mesh], jax.Array]] = {
+    "points": lambda mesh: mesh.points,
+    "cells": lambda mesh: mesh.cells,
+    "hinges": lambda mesh: mesh.hinges,
+    "closed_surface_triangles": lambda mesh: mesh.topology.closed_surface_triangles(),
+}
+
+_PRECONDITIONS: dict[str, tuple[Callable[[Mesh], bool], str]] = {
+    "triangles_in_3d": (lambda mesh: mesh.n_manifold_dims == 2 and mesh.n_spatial_dims == 3, "a triangle surface in 3-D"),
+    "full_dimensional": (lambda mesh: mesh.n_manifold_dims == mesh.n_spatial_dims, "full-dimensional cells (n_manifold_dims == n_spatial_dims)"),
+}
+
+_SOURCE_DESCRIPTIONS = {
+    "points": "``self.points``",
+    "cells": "the cached cells",
+    "hinges": "the interior hinges (:attr:`Mesh.hinges`, built once)",
+    "closed_surface_triangles": (
+        "the triangles, after checking once (and caching) the closed-surface contract the op assumes: at least one "
+        "triangle, no duplicate, every edge in exactly two oppositely directed triangles, one edge-connected component"
+    ),
+}
+
+_KEY_NOTE = "may also be given as ``point_data`` keys (a name or a tuple path into nested data; a missing key is a ``KeyError`` listing the available ones)"
+
+
+def _generated_method(declaration: OpDeclaration) -> Callable:
+    """The ``Mesh`` method of ``declaration``: the op's signature minus the arguments the mesh binds."""
+    op = getattr(importlib.import_module(declaration.module), declaration.name)
+    binding = declaration.mesh_arguments
+    op_signature = inspect.signature(op)
+    parameters = [inspect.Parameter("self", inspect.Parameter.POSITIONAL_OR_KEYWORD)]
+    for name, parameter in op_signature.parameters.items():
+        if name in binding.bound:
+            continue
+        if name in binding.point_data_fields:
+            parameter = parameter.replace(annotation=f"{parameter.annotation} | str | tuple[str, ...]")
+        parameters.append(parameter)
+    returns = op_signature.return_annotation if binding.current_points else "Mesh"
+    signature = inspect.Signature(parameters, return_annotation=returns)
+
+    def method(self: Mesh, *args, **kwargs):
+        arguments = signature.bind(self, *args, **kwargs)
+        arguments.apply_defaults()
+        del arguments.arguments["self"]
+        call = dict(arguments.arguments)
+        if binding.requires is not None:
+            holds, need = _PRECONDITIONS[binding.requires]
+            if not holds(self):
+                raise ValueError(f"{declaration.name} needs {need}, got {SIMPLEX_NAMES[self.n_manifold_dims + 1]} in {self.n_spatial_dims}-D")
+        for name, source in binding.bound.items():
+            call[name] = _FROM_MESH[source](self)
+        for name in binding.point_data_fields:
+            call[name] = self._field(name, call[name])
+        if binding.current_points is not None:
+            call[binding.current_points] = self._current_points(call[binding.current_points])
+            return op(**call)
+        return self.with_points(op(**call))
+
+    method.__name__ = declaration.mesh_method
+    method.__qualname__ = f"Mesh.{declaration.mesh_method}"
+    method.__signature__ = signature
+    method.__doc__ = _generated_docstring(declaration, op)
+    return method
+
+
+def _generated_docstring(declaration: OpDeclaration, op: Callable) -> str:
+    binding = declaration.mesh_arguments
+    header = inspect.getdoc(op).split("\n", 1)[0]
+    bound = ", ".join(f"``{name}`` = {_SOURCE_DESCRIPTIONS[source]}" for name, source in binding.bound.items())
+    lines = [header, "", f"Calls :func:`geomjax.{declaration.name}` with {bound}."]
+    if binding.current_points is not None:
+        lines.append(
+            f"``{binding.current_points}`` must be unbatched ``(N, D)`` with the shape and dtype of ``self.points`` "
+            "(``ValueError`` / ``TypeError`` otherwise); ``vmap`` this method for a batch."
+        )
+    else:
+        lines.append("Returns a new ``Mesh`` with the moved points, this mesh's topology object and its data.")
+    if binding.point_data_fields:
+        names = " and ".join(f"``{name}``" for name in binding.point_data_fields)
+        lines.append(f"{names} {_KEY_NOTE}.")
+    if binding.requires is not None:
+        lines += ["", "Raises:", f"    ValueError: unless the mesh has {_PRECONDITIONS[binding.requires][1]}."]
+    lines += ["", f"See geomjax.{declaration.name} for the arguments, errors and backends."]
+    return "\n".join(lines)
+
+
+def _remesh_signature() -> inspect.Signature:
+    """``Mesh.remesh``'s signature: its own arguments, then :func:`geomjax.remeshing`'s other options."""
+    from .remesh.clustering import remeshing
+
+    own = list(inspect.signature(Mesh.remesh).parameters.values())[:-1]  # without **remeshing_options
+    taken = {parameter.name for parameter in own}
+    options = [p for p in inspect.signature(remeshing).parameters.values() if p.kind is p.KEYWORD_ONLY and p.name not in taken]
+    return inspect.signature(Mesh.remesh).replace(parameters=own + options)
+
+
+Mesh.remesh.__signature__ = _remesh_signature()
+
+for _declaration in REGISTRY.values():
+    if _declaration.mesh_arguments is not None:
+        setattr(Mesh, _declaration.mesh_method, _generated_method(_declaration))
+    elif _declaration.mesh_method is not None and not hasattr(Mesh, _declaration.mesh_method):
+        raise AssertionError(f"Mesh.{_declaration.mesh_method} (for {_declaration.name}) is neither generated nor written")
+
+
 def _checked_box_extent(extent: jax.Array) -> jax.Array:
     valid = jnp.all(jnp.isfinite(extent) & (extent > jnp.zeros((), extent.dtype)))
     message = (
@@ -617,7 +481,7 @@ def _checked_box_extent(extent: jax.Array) -> jax.Array:
         "axis (flat or embedded geometry needs an explicit extent)"
     )
     if isinstance(extent, jax.core.Tracer):
-        return eqx.error_if(extent, jnp.logical_not(valid), message)
+        return runtime_check(extent, jnp.logical_not(valid), message, ValueError)
     if not bool(valid):
         raise ValueError(f"{message}, got {np.asarray(extent).tolist()}")
     return extent
@@ -637,8 +501,7 @@ def _validate_cells(cells, num_points: int, num_dims: int) -> np.ndarray:
     """Check raw cells and return them as an int64 NumPy array (see :class:`Mesh` for the rules)."""
     if isinstance(cells, jax.core.Tracer):
         raise TypeError(
-            "cells must be a concrete integer array (topology is validated eagerly), got a traced value: "
-            "build the Mesh outside jit or close over the cells"
+            "cells must be a concrete integer array (topology is validated eagerly), got a traced value: build the Mesh outside jit or close over the cells"
         )
     if not is_array(cells):
         raise TypeError(f"cells must be an integer array, got {type(cells).__name__}")
@@ -647,14 +510,9 @@ def _validate_cells(cells, num_points: int, num_dims: int) -> np.ndarray:
         raise TypeError(f"cells must have a non-bool integer dtype, got {dtype}")
     host = np.asarray(cells)
     if host.ndim != 2 or not 2 <= host.shape[1] <= 4:
-        raise ValueError(
-            f"cells must have shape (M, K) with K = 2, 3 or 4 vertices per cell (segments, triangles, tetrahedra), "
-            f"got {tuple(host.shape)}"
-        )
+        raise ValueError(f"cells must have shape (M, K) with K = 2, 3 or 4 vertices per cell (segments, triangles, tetrahedra), got {tuple(host.shape)}")
     if host.shape[1] - 1 > num_dims:
-        raise ValueError(
-            f"cells of manifold dimension {host.shape[1] - 1} cannot live in {num_dims}-D points (need K - 1 <= D)"
-        )
+        raise ValueError(f"cells of manifold dimension {host.shape[1] - 1} cannot live in {num_dims}-D points (need K - 1 <= D)")
     if num_points >= 2**31:
         raise ValueError(f"a Mesh holds at most 2**31 - 1 points (int32 indices), got {num_points}")
     if host.size == 0:
@@ -714,9 +572,7 @@ def _check_unique_triangles(triangles: np.ndarray, purpose: str) -> None:
     same = np.flatnonzero(np.all(ordered[1:] == ordered[:-1], axis=1))
     if same.size:
         first, second = sorted(order[same[0] : same[0] + 2].tolist())
-        raise ValueError(
-            f"{purpose} needs unique triangles: cells {first} and {second} are the same face {triangles[first].tolist()}"
-        )
+        raise ValueError(f"{purpose} needs unique triangles: cells {first} and {second} are the same face {triangles[first].tolist()}")
 
 
 def _edge_incidence(triangles: np.ndarray):
@@ -767,10 +623,7 @@ def _check_closed_surface(triangles: np.ndarray) -> np.ndarray:
     if wrong.size:
         edge, count = starts[wrong[0]], counts[wrong[0]]
         rule = "the surface is open (boundary edge)" if count == 1 else "the edge is non-manifold"
-        raise ValueError(
-            "closed_surface_volume_energy needs every edge in exactly two triangles: "
-            f"edge ({u[edge]}, {v[edge]}) belongs to {count}, so {rule}"
-        )
+        raise ValueError(f"closed_surface_volume_energy needs every edge in exactly two triangles: edge ({u[edge]}, {v[edge]}) belongs to {count}, so {rule}")
     same_direction = np.flatnonzero(forward[starts] == forward[starts + 1])
     if same_direction.size:
         edge = starts[same_direction[0]]
@@ -780,9 +633,7 @@ def _check_closed_surface(triangles: np.ndarray) -> np.ndarray:
         )
     components = _count_components(triangles.shape[0], face[starts], face[starts + 1])
     if components != 1:
-        raise ValueError(
-            f"closed_surface_volume_energy needs one edge-connected surface, got {components} components"
-        )
+        raise ValueError(f"closed_surface_volume_energy needs one edge-connected surface, got {components} components")
     return triangles
 
 

@@ -26,10 +26,7 @@ def _meshio(op_name: str):
     try:
         import meshio
     except ImportError as error:
-        raise ImportError(
-            f'{op_name} needs meshio, which is optional: install it with pip install "geomjax[io]" '
-            '(or pip install "meshio>=5")'
-        ) from error
+        raise ImportError(f'{op_name} needs meshio, which is optional: install it with pip install "geomjax[io]" (or pip install "meshio>=5")') from error
     return meshio
 
 
@@ -76,8 +73,7 @@ def read_mesh(path: str | os.PathLike, *, dtype=None) -> Mesh:
     blocking = sorted({block.type for block in source.cells if _NON_SIMPLEX_DIMS.get(block.type, 0) >= num_vertices - 1})
     if blocking:
         raise ValueError(
-            f"read_mesh: {os.fspath(path)!r} mixes {_MESHIO_TYPES[num_vertices]} cells with non-simplex cells "
-            f"{blocking}; a Mesh holds one simplex type"
+            f"read_mesh: {os.fspath(path)!r} mixes {_MESHIO_TYPES[num_vertices]} cells with non-simplex cells {blocking}; a Mesh holds one simplex type"
         )
     chosen = [i for i in simplex_blocks if _VERTICES_OF[source.cells[i].type] == num_vertices]
     cells = np.concatenate([source.cells[i].data for i in chosen]).astype(np.int64)

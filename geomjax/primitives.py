@@ -23,18 +23,43 @@ __all__ = ["icosphere", "rectangle", "tetrahedralized_box", "polyline"]
 _GOLDEN = (1.0 + 5.0**0.5) / 2.0
 _ICOSAHEDRON_VERTICES = np.array(
     [
-        [-1, _GOLDEN, 0], [1, _GOLDEN, 0], [-1, -_GOLDEN, 0], [1, -_GOLDEN, 0],
-        [0, -1, _GOLDEN], [0, 1, _GOLDEN], [0, -1, -_GOLDEN], [0, 1, -_GOLDEN],
-        [_GOLDEN, 0, -1], [_GOLDEN, 0, 1], [-_GOLDEN, 0, -1], [-_GOLDEN, 0, 1],
+        [-1, _GOLDEN, 0],
+        [1, _GOLDEN, 0],
+        [-1, -_GOLDEN, 0],
+        [1, -_GOLDEN, 0],
+        [0, -1, _GOLDEN],
+        [0, 1, _GOLDEN],
+        [0, -1, -_GOLDEN],
+        [0, 1, -_GOLDEN],
+        [_GOLDEN, 0, -1],
+        [_GOLDEN, 0, 1],
+        [-_GOLDEN, 0, -1],
+        [-_GOLDEN, 0, 1],
     ]
 )
 # Counter-clockwise seen from outside, so every normal points outward.
 _ICOSAHEDRON_FACES = np.array(
     [
-        [0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11],
-        [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8],
-        [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9],
-        [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1],
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
     ]
 )
 
@@ -83,20 +108,11 @@ def icosphere(subdivisions: int, radius: float = 1.0, *, dtype=None) -> Mesh:
         m01, m12, m20 = (num_vertices + midpoint_of.reshape(-1, 3)).T
         v0, v1, v2 = faces.T
         # The four children keep the parent's winding.
-        faces = np.concatenate(
-            [np.stack(corner, axis=1) for corner in ((v0, m01, m20), (v1, m12, m01), (v2, m20, m12), (m01, m12, m20))]
-        )
+        faces = np.concatenate([np.stack(corner, axis=1) for corner in ((v0, m01, m20), (v1, m12, m01), (v2, m20, m12), (m01, m12, m20))])
     return Mesh(_points(vertices * radius, dtype), faces)
 
 
-def rectangle(
-    nx: int,
-    ny: int,
-    *,
-    origin: Sequence[float] = (0.0, 0.0),
-    extent: Sequence[float] = (1.0, 1.0),
-    dtype=None,
-) -> Mesh:
+def rectangle(nx: int, ny: int, *, origin: Sequence[float] = (0.0, 0.0), extent: Sequence[float] = (1.0, 1.0), dtype=None) -> Mesh:
     """Triangulated axis-aligned rectangle in 2-D.
 
     An ``nx`` by ``ny`` grid of quads, each split along the same diagonal into two
@@ -127,15 +143,7 @@ def rectangle(
     return _grid(counts, origin, extent, dtype, _triangles_of_square())
 
 
-def tetrahedralized_box(
-    nx: int,
-    ny: int,
-    nz: int,
-    *,
-    origin: Sequence[float] = (0.0, 0.0, 0.0),
-    extent: Sequence[float] = (1.0, 1.0, 1.0),
-    dtype=None,
-) -> Mesh:
+def tetrahedralized_box(nx: int, ny: int, nz: int, *, origin: Sequence[float] = (0.0, 0.0, 0.0), extent: Sequence[float] = (1.0, 1.0, 1.0), dtype=None) -> Mesh:
     """Conforming tetrahedral mesh of an axis-aligned box.
 
     An ``nx`` by ``ny`` by ``nz`` grid of hexahedra, each split into six tetrahedra around its
@@ -251,9 +259,7 @@ def _grid(counts: tuple[int, ...], origin, extent, dtype, corner_simplices: np.n
     # C order reversed so that x varies fastest in the vertex numbering.
     coordinates = np.stack([g.reshape(-1) for g in np.meshgrid(*axes[::-1], indexing="ij")][::-1], axis=1)
     strides = np.cumprod((1,) + tuple(n + 1 for n in counts[:-1]))
-    cell_origins = sum(
-        np.arange(counts[d]).reshape((-1,) + (1,) * d) * strides[d] for d in range(dims)
-    ).reshape(-1)
+    cell_origins = sum(np.arange(counts[d]).reshape((-1,) + (1,) * d) * strides[d] for d in range(dims)).reshape(-1)
     corner_offsets = np.array([sum(((c >> d) & 1) * strides[d] for d in range(dims)) for c in range(2**dims)])
     cells = cell_origins[:, None, None] + corner_offsets[corner_simplices][None]
     return Mesh(_points(coordinates, dtype), cells.reshape(-1, corner_simplices.shape[1]))

@@ -2,9 +2,11 @@
 
 ``from torch_bridge import morph_points`` replaces ``from physicsnemo.nn.functional import
 morph_points``: same parameters and defaults, same values, same exception types, gradients of any
-order the JAX path supports, ``torch.compile(fullgraph=True)`` without graph breaks. Tensors cross
-to JAX and back with zero-copy DLPack; float64 tensors run under a local x64 context, so no JAX
-configuration is needed. ``implementation="torch"`` means geomjax's portable ``"jax"`` path.
+order the JAX path supports, ``torch.compile(fullgraph=True)`` without graph breaks, and
+``torch.func`` transforms (``grad``, ``vjp``, ``jvp``, ``jacrev``, ``jacfwd``, ``hessian``, ``vmap``)
+through ``jax.vjp``, ``jax.jvp`` and ``jax.vmap``. Tensors cross to JAX and back with zero-copy
+DLPack; float64 tensors run under a local x64 context, so no JAX configuration is needed.
+``implementation="torch"`` means geomjax's portable ``"jax"`` path.
 
 Every function is generated from the op table in :mod:`torch_bridge._ops`; each is also available as
 the custom op ``torch.ops.geomjax.<name>``. CUDA tensors stay on their device (JAX orders its work
@@ -30,9 +32,9 @@ Example:
             [4.0000, 2.0000]])
 """
 
-from ._bridge import make_public_function
 from ._ops import MESH_OPS, OPS
 from ._ray import ray_mesh_intersect
+from ._signature import make_public_function
 
 __all__ = [op.name for op in (*OPS, *MESH_OPS)] + ["ray_mesh_intersect"]
 globals().update({op.name: make_public_function(op) for op in (*OPS, *MESH_OPS)})

@@ -8,6 +8,8 @@ torch users pass around exactly as reference users pass a ``wp.Mesh``.
 
 from __future__ import annotations
 
+import inspect
+
 import jax.numpy as jnp
 import numpy as np
 import torch
@@ -15,12 +17,11 @@ import torch
 import geomjax
 from geomjax.query.bvh import MeshBVH
 
-from ._bridge import BridgedOp, _docstring, to_jax
+from ._dlpack import to_jax
+from ._signature import BridgedOp, public_docstring
 
 
-def _intersect_with_handle(
-    mesh_vertices, mesh_indices, ray_origins, ray_directions, max_distance, warp_mesh_handle, implementation
-):
+def _intersect_with_handle(mesh_vertices, mesh_indices, ray_origins, ray_directions, max_distance, warp_mesh_handle, implementation):
     warp_mesh = None
     if warp_mesh_handle is not None:
         # geomjax only searches the BVH through its handle (hits are replayed on mesh_vertices and
@@ -37,11 +38,15 @@ def _intersect_with_handle(
 _intersect_with_handle.__doc__ = geomjax.ray_mesh_intersect.__doc__
 
 RAY_MESH_INTERSECT = BridgedOp(
-    "ray_mesh_intersect(mesh_vertices: Tensor, mesh_indices: Tensor, ray_origins: Tensor, ray_directions: Tensor,"
-    " max_distance: float = 100000000.0, warp_mesh_handle: Tensor | None = None, *,"
-    " implementation: str | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]",
+    geomjax.ray_mesh_intersect,
     _intersect_with_handle,
+    rename={"warp_mesh": "warp_mesh_handle"},
+    annotations={"warp_mesh_handle": "Tensor | None"},
+    exclude=("return_warp_mesh",),
+    returns="tuple[Tensor, Tensor, Tensor, Tensor, Tensor]",  # the BVH is added by the wrapper
 )
+# The wrapper's defaults are geomjax's (one place for them).
+_DEFAULTS = {name: p.default for name, p in inspect.signature(geomjax.ray_mesh_intersect).parameters.items()}
 
 
 def ray_mesh_intersect(
@@ -49,11 +54,11 @@ def ray_mesh_intersect(
     mesh_indices,
     ray_origins,
     ray_directions,
-    max_distance=100000000.0,
-    warp_mesh=None,
-    return_warp_mesh=False,
+    max_distance=_DEFAULTS["max_distance"],
+    warp_mesh=_DEFAULTS["warp_mesh"],
+    return_warp_mesh=_DEFAULTS["return_warp_mesh"],
     *,
-    implementation=None,
+    implementation=_DEFAULTS["implementation"],
 ):
     if warp_mesh is not None and not isinstance(warp_mesh, MeshBVH):
         raise TypeError(
@@ -77,15 +82,13 @@ def ray_mesh_intersect(
             )
         # Two words; int64 because torch's uint32 support is partial.
         handle = torch.from_numpy(np.asarray(warp_mesh.mesh_words).astype(np.int64)).to(mesh_vertices.device)
-    result = RAY_MESH_INTERSECT(
-        mesh_vertices, mesh_indices, ray_origins, ray_directions, max_distance, handle, implementation
-    )
+    result = RAY_MESH_INTERSECT(mesh_vertices, mesh_indices, ray_origins, ray_directions, max_distance, handle, implementation)
     return (*result, warp_mesh) if return_warp_mesh else result
 
 
 ray_mesh_intersect.__module__ = "torch_bridge"
 ray_mesh_intersect.bridged_op = RAY_MESH_INTERSECT
-ray_mesh_intersect.__doc__ = _docstring(RAY_MESH_INTERSECT).replace(
+ray_mesh_intersect.__doc__ = public_docstring(RAY_MESH_INTERSECT).replace(
     "custom op ``torch.ops.geomjax.ray_mesh_intersect``",
     "custom op ``torch.ops.geomjax.ray_mesh_intersect`` (which takes the BVH as its handle words, "
     "``warp_mesh_handle``, instead of ``warp_mesh``/``return_warp_mesh``)",

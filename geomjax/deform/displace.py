@@ -5,12 +5,14 @@ from __future__ import annotations
 from jaxtyping import Array, Bool, Float
 
 from .._dispatch import platform_of, select_implementation
+from .._errors import raises_documented_errors
 from .._points import apply_point_weights
 from .._validate import check_coordinates, check_point_weights, check_same_shape
 
 __all__ = ["displace_points"]
 
 
+@raises_documented_errors
 def displace_points(
     points: Float[Array, "*batch num_points num_dims"],
     displacement: Float[Array, "*batch num_points num_dims"],
@@ -53,7 +55,5 @@ def displace_points(
     points, _ = check_coordinates("points", points)
     displacement = check_same_shape("points", points, "displacement", displacement)
     point_weights = check_point_weights(point_weights, points)
-    select_implementation(
-        "displace_points", implementation, backends=("jax",), default={}, platform=platform_of(points)
-    )
+    select_implementation("displace_points", implementation, platform=platform_of(points))
     return apply_point_weights(points, displacement, point_weights)

@@ -11,19 +11,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .._blocking import map_query_blocks, query_block_size
-from .._dispatch import platform_of, select_implementation
+from .._dispatch import Implementation, platform_of, select_implementation
+from .._errors import raises_documented_errors
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
 from .._sharding import map_local_shards
-from .._validate import (
-    is_array,
-    as_float_array,
-    check_choice,
-    check_coordinates,
-    check_point_weights,
-    check_real_sequence,
-    check_same_device,
-    check_same_dtype,
-)
+from .._validate import as_float_array, check_choice, check_coordinates, check_point_weights, check_real_sequence, check_same_device, check_same_dtype, is_array
 
 __all__ = ["free_form_deform_points", "FFD_BASES"]
 
@@ -31,22 +23,13 @@ FFD_BASES = ("bernstein", "bspline", "linear", "cubic_hermite", "quintic_hermite
 _MIN_NODES = {"bernstein": 2, "bspline": 4, "linear": 2, "cubic_hermite": 2, "quintic_hermite": 2}
 
 
-
-def _default_backend(basis: str) -> dict[str, str]:
-    """Backend chosen by ``implementation=None``, per platform (see ``benchmarks/bench_ffd.py``).
-
-    CPU: Bernstein -> JAX (a fused node-by-node sum for the value, and one GEMM plus per-axis
-    contractions for derivatives, beat the per-thread Warp loops);
-    the local bases -> Warp (its per-point loops beat XLA's gathers and their scatter
-    transposes). GPU: Warp, as in the reference (not measured in this repository).
-    """
-    return {"cpu": "jax" if basis == "bernstein" else "warp", "gpu": "warp", "cuda": "warp"}
 # Largest lattice dimension and Bernstein nodes per axis that the Warp kernels handle (their
 # per-thread basis tables have a fixed size); ``implementation=None`` falls back to JAX beyond it.
 WARP_MAX_DIMS = 3
 WARP_MAX_BERNSTEIN_NODES = 32
 
 
+@raises_documented_errors
 def free_form_deform_points(
     points: Float[Array, "*batch num_points num_dims"],
     control_displacements: Float[Array, "*batch *lattice_resolution num_dims"],
@@ -98,9 +81,8 @@ def free_form_deform_points(
             ``"bernstein"`` and Warp for the four local bases; on GPU Warp (the reference's
             choice; not measured here). It falls back to JAX when Warp is missing or cannot take
             the input (``D > 3``, or more than 32 Bernstein nodes on an axis). Explicit
-            ``"warp"`` supports ``D <= 3`` and at most 32 Bernstein nodes per axis. Pass
-            ``"jax"`` for forward-mode or higher-order derivatives: Warp is first-order reverse
-            mode only.
+            ``"warp"`` supports ``D <= 3`` and at most 32 Bernstein nodes per axis, and values
+            and first-order reverse mode only (see Differentiability).
 
     Returns:
         Deformed points with the shape and dtype of ``points``.
@@ -116,21 +98,13 @@ def free_form_deform_points(
         ImportError: ``implementation="warp"`` without warp-lang.
 
     Differentiability: ``points`` (through the basis), ``control_displacements`` and float
-    ``point_weights``. ``origin`` and ``extent`` are configuration: gradients are stopped there.
-    The JAX path supports ``jit``, ``vmap`` (over points and over designs), reverse and forward
-    mode and higher order; the Warp path supports ``jit``, ``vmap`` and first-order reverse mode
-    (``jax.custom_vjp``). The JAX path evaluates queries in blocks, so memory stays bounded for
-    millions of points.
+    ``point_weights``, with the transforms of the README's "Backends and transforms" (the Warp
+    path through ``jax.custom_vjp``). ``origin`` and ``extent`` are configuration: gradients are
+    stopped there. The JAX path evaluates queries in blocks, so memory stays bounded for millions
+    of points.
 
-    Sharding: with inputs split over a mesh with ``Explicit`` axes (``jax.make_mesh``'s
-    default), designs (the leading batch axis) and points are computed shard by shard inside
-    ``jax.shard_map`` on both backends (shared inputs replicated, no communication on the way
-    forward; gradients of replicated inputs are summed over devices) and the result keeps the
-    split of ``points``. Under ``Auto`` axes the JAX path is partitioned by XLA and stays local;
-    the Warp kernels are opaque to XLA, which gathers their inputs on every device (correct, not
-    parallel). Under ``Explicit`` axes pass a design batch as the leading axis rather than
-    ``vmap`` over a split axis (Warp's sequential FFI batching is a scan, which JAX refuses
-    there).
+    Sharding: see the README's "Sharding"; designs and points are computed shard by shard on
+    both backends and the result keeps the split of ``points``.
 
     Example:
         >>> import jax.numpy as jnp
@@ -151,10 +125,7 @@ def free_form_deform_points(
     resolution = tuple(int(n) for n in lattice.shape[int(batched) : -1])
     minimum = _MIN_NODES[basis]
     if min(resolution) < minimum:
-        raise ValueError(
-            f"control_displacements needs at least {minimum} nodes per lattice axis for basis={basis!r}, "
-            f"got lattice resolution {resolution}"
-        )
+        raise ValueError(f"control_displacements needs at least {minimum} nodes per lattice axis for basis={basis!r}, got lattice resolution {resolution}")
     origin = _check_box("origin", origin, points, batched, positive=False)
     extent = _check_box("extent", extent, points, batched, positive=True)
     point_weights = check_point_weights(point_weights, points)
@@ -163,16 +134,15 @@ def free_form_deform_points(
     backend = select_implementation(
         "free_form_deform_points",
         implementation,
-        backends=("jax", "warp"),
-        default=_default_backend(basis) if warp_fits else {},
         platform=platform_of(points),
+        variant=basis,
+        warp_unsupported=None
+        if warp_fits
+        else (
+            f"supports D <= {WARP_MAX_DIMS} and at most {WARP_MAX_BERNSTEIN_NODES} Bernstein nodes per axis, "
+            f"got D={num_dims}, basis={basis!r}, resolution {resolution}"
+        ),
     )
-    if backend == "warp" and not warp_fits:
-        raise ValueError(
-            f"free_form_deform_points: implementation='warp' supports D <= {WARP_MAX_DIMS} and at most "
-            f"{WARP_MAX_BERNSTEIN_NODES} Bernstein nodes per axis, got D={num_dims}, basis={basis!r}, "
-            f"resolution {resolution}; use implementation='jax'"
-        )
 
     points_b = add_batch_axis(points, batched)
     lattice_b = add_batch_axis(lattice, batched)
@@ -192,22 +162,21 @@ def free_form_deform_points(
     return remove_batch_axis(out, batched)
 
 
-def _deform(points, lattice, origin, extent, weights, *, basis: str, backend: str) -> jax.Array:
+def _deform(points, lattice, origin, extent, weights, *, basis: str, backend: Implementation) -> jax.Array:
     """Deformed ``(B, N, D)`` points from normalised inputs (independent per design and point)."""
-    if backend == "warp":
+    if backend.is_warp:
         from warp_ffi.ffd import free_form_deform_field
 
         num_batch, _, num_dims = points.shape
-        field = free_form_deform_field(
-            points,
-            lattice,
-            jnp.broadcast_to(origin, (num_batch, num_dims)),
-            jnp.broadcast_to(extent, (num_batch, num_dims)),
-            basis=basis,
-        )
+        box = (jnp.broadcast_to(origin, (num_batch, num_dims)), jnp.broadcast_to(extent, (num_batch, num_dims)))
+        field = backend.run(functools.partial(free_form_deform_field, basis=basis), functools.partial(_jax_field, basis=basis), points, lattice, *box)
     else:
         field = ffd_field(points, lattice, origin, extent, basis)
     return apply_point_weights(points, field, weights)
+
+
+def _jax_field(points, lattice, origin, extent, *, basis: str) -> jax.Array:
+    return ffd_field(points, lattice, origin, extent, basis)
 
 
 # --------------------------------------------------------------------------------------------
@@ -233,13 +202,10 @@ def _check_lattice(points: jax.Array, batched: bool, lattice) -> jax.Array:
             f"got shape {tuple(lattice.shape)}"
         )
     if lattice.shape[-1] != num_dims:
-        raise ValueError(
-            f"control_displacements must hold {num_dims}-vectors (last axis {num_dims}), got shape {tuple(lattice.shape)}"
-        )
+        raise ValueError(f"control_displacements must hold {num_dims}-vectors (last axis {num_dims}), got shape {tuple(lattice.shape)}")
     if batched and lattice.shape[0] != points.shape[0]:
         raise ValueError(
-            f"control_displacements batch size {lattice.shape[0]} does not match points batch size "
-            f"{points.shape[0]} (batches are aligned, not broadcast)"
+            f"control_displacements batch size {lattice.shape[0]} does not match points batch size {points.shape[0]} (batches are aligned, not broadcast)"
         )
     return lattice
 
@@ -335,11 +301,7 @@ def bernstein_columns(u: jax.Array, num_nodes: int) -> list[jax.Array]:
     lower = jnp.ones((), u.dtype) - u
     columns = [jnp.ones_like(u)]
     for degree in range(1, num_nodes):
-        columns = (
-            [lower * columns[0]]
-            + [lower * columns[i] + u * columns[i - 1] for i in range(1, degree)]
-            + [u * columns[degree - 1]]
-        )
+        columns = [lower * columns[0]] + [lower * columns[i] + u * columns[i - 1] for i in range(1, degree)] + [u * columns[degree - 1]]
     return columns
 
 
@@ -451,9 +413,7 @@ def _local_weights(u: jax.Array, num_nodes: int, basis: str) -> tuple[jax.Array,
         t3 = t2 * t
         v = one - t
         c = lambda value: jnp.asarray(value, dtype)  # noqa: E731
-        weights = jnp.stack(
-            [v * v * v, c(3) * t3 - c(6) * t2 + c(4), c(-3) * t3 + c(3) * t2 + c(3) * t + one, t3], axis=-1
-        ) / c(6)
+        weights = jnp.stack([v * v * v, c(3) * t3 - c(6) * t2 + c(4), c(-3) * t3 + c(3) * t2 + c(3) * t + one, t3], axis=-1) / c(6)
         return cell, weights
     if basis == "linear":
         upper = t

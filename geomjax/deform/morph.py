@@ -11,11 +11,11 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._blocking import map_query_blocks, query_block_size
-from .._dispatch import platform_of, select_implementation
+from .._dispatch import Implementation, platform_of, select_implementation
+from .._errors import raises_documented_errors
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
 from .._sharding import map_local_shards
 from .._validate import (
-    is_array,
     as_float_array,
     check_choice,
     check_companion,
@@ -25,17 +25,15 @@ from .._validate import (
     check_same_device,
     check_same_dtype,
     check_same_shape,
+    is_array,
 )
 
 __all__ = ["morph_points"]
 
 KERNELS = ("wendland_c2",)
 
-# Faster backend per platform, as measured by benchmarks/bench_morph.py (see the docstring).
-# GPUs are unmeasured (no GPU was available), so they keep the portable path.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp"}
 
-
+@raises_documented_errors
 def morph_points(
     points: Float[Array, "*batch num_points num_dims"],
     control_points: Float[Array, "*batch num_controls num_dims"],
@@ -77,12 +75,9 @@ def morph_points(
         point_weights: optional ``(N,)`` / ``(B, N)`` per-point weights multiplying the field:
             bool (hard mask) or float of the points dtype (signed, above one, differentiable).
         kernel: compact radial kernel; only ``"wendland_c2"``.
-        implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. ``None`` picks
-            Warp on CPU when warp-lang is installed, ``"jax"`` otherwise and on GPU. On CPU the
-            benchmark (``benchmarks/bench_morph.py``) measures the Warp path 4x (every control
-            in range) to 1000x (100,000 controls, ~50 in range) faster, because its spatial
-            hash grid only visits nearby controls while the JAX path evaluates every
-            point/control pair. The GPU default stays on JAX until it is measured there.
+        implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``: the registry's
+            default (Warp on CPU, whose hash grid visits only nearby controls; JAX on GPU and
+            without warp-lang; see "Backends and transforms" in the README).
 
     Returns:
         Morphed points, same shape and dtype as ``points``.
@@ -97,20 +92,12 @@ def morph_points(
         ImportError: ``implementation="warp"`` without warp-lang.
 
     Differentiable in ``points``, ``control_points``, ``control_displacements``, an array
-    ``radius`` and float ``point_weights``. The JAX path supports ``jit``, ``vmap`` (over points
-    or over designs), reverse and forward mode to any order, and never holds more than one block
-    of point/control pairs (1e6 points x 1e3 controls, value and gradient, stay under 4 GB).
-    The Warp path supports ``jit``, ``vmap`` and first-order reverse mode (hand-written adjoint).
+    ``radius`` and float ``point_weights``, with the transforms of the README's "Backends and
+    transforms". The JAX path never holds more than one block of point/control pairs (1e6 points
+    x 1e3 controls, value and gradient, stay under 4 GB).
 
-    Sharding: with inputs split over a mesh with ``Explicit`` axes (``jax.make_mesh``'s
-    default), designs (the leading batch axis) and points are computed shard by shard inside
-    ``jax.shard_map`` on both backends (shared inputs replicated, no communication on the way
-    forward; gradients of replicated inputs are summed over devices) and the result keeps the
-    split of ``points``. Under ``Auto`` axes the JAX path is partitioned by XLA and stays local;
-    the Warp kernels are opaque to XLA, which gathers their inputs on every device (correct, not
-    parallel). Under ``Explicit`` axes pass a design batch as the leading axis rather than
-    ``vmap`` over a split axis (Warp's sequential FFI batching is a scan, which JAX refuses
-    there).
+    Sharding: see the README's "Sharding"; designs and points are computed shard by shard on
+    both backends and the result keeps the split of ``points``.
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -129,13 +116,7 @@ def morph_points(
     control_displacements = check_same_shape("control_points", control_points, "control_displacements", control_displacements)
     point_weights = check_point_weights(point_weights, points)
     check_choice("kernel", kernel, KERNELS)
-    backend = select_implementation(
-        "morph_points",
-        implementation,
-        backends=("jax", "warp"),
-        default=DEFAULT_IMPLEMENTATION,
-        platform=platform_of(points),
-    )
+    backend = select_implementation("morph_points", implementation, platform=platform_of(points))
     radius = _radius_array(radius, control_points, batched)
 
     args = (
@@ -149,17 +130,19 @@ def morph_points(
     return remove_batch_axis(out, batched)
 
 
-def _morph(x, controls, displacements, radius, weights, *, backend: str) -> jax.Array:
+def _morph(x, controls, displacements, radius, weights, *, backend: Implementation) -> jax.Array:
     """Morphed ``(B, N, D)`` points from normalised inputs (independent per design and point)."""
     if controls.shape[-2] == 0 or x.shape[-2] == 0:
         field = jnp.zeros_like(x)
-    elif backend == "warp":
-        from warp_ffi.morph import morph_field
-
-        field = morph_field(x, controls, displacements, radius)
     else:
-        field = morph_field_jax(x, controls, displacements, radius)
+        field = backend.run(_warp_field, morph_field_jax, x, controls, displacements, radius)
     return apply_point_weights(x, field, weights)
+
+
+def _warp_field(points, controls, displacements, radius):
+    from warp_ffi.morph import morph_field
+
+    return morph_field(points, controls, displacements, radius)
 
 
 def _radius_array(radius, control_points: jax.Array, batched: bool) -> jax.Array | None:

@@ -16,6 +16,7 @@ Two things go beyond the reference API:
 from __future__ import annotations
 
 import decimal
+import functools
 import struct
 
 import equinox as eqx
@@ -25,28 +26,16 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._blocking import map_query_blocks, query_block_size
-from .._dispatch import platform_of, select_implementation
+from .._dispatch import Implementation, platform_of, select_implementation
+from .._errors import raises_documented_errors, runtime_check
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
 from .._sharding import map_local_shards
-from .._validate import (
-    check_bool,
-    check_choice,
-    check_companion,
-    check_coordinates,
-    check_point_weights,
-    check_real_scalar,
-    check_same_shape,
-)
+from .._validate import check_bool, check_choice, check_companion, check_coordinates, check_point_weights, check_real_scalar, check_same_shape
 
 __all__ = ["ThinPlateSplineFit", "radial_basis_function_deform_points"]
 
+_NAME = "radial_basis_function_deform_points"
 KERNELS = ("thin_plate_spline",)
-BACKENDS = ("jax", "warp")
-# benchmarks/bench_rbf.py (1e6 points x 1,000 controls, float64, 2-core CPU): JAX 13x faster
-# than scipy, Warp 2.2x (Warp's CPU backend runs one thread; XLA uses every core), so CPU -> JAX.
-# On CUDA the Warp evaluator (one thread per query, no block loop) is the reference's default;
-# not measured here (no GPU was available), so that entry follows the reference.
-DEFAULT_IMPLEMENTATION = {"cpu": "jax", "gpu": "warp"}
 # Pairwise temporaries per query block (bytes per live N_block x C array). Small blocks stay in
 # cache on CPU (measured fastest around 2-8 MiB); GPUs want large launches.
 _BLOCK_BYTES = {"cpu": 4 * 2**20}
@@ -57,6 +46,7 @@ _DEFAULT_BLOCK_BYTES = 64 * 2**20
 _PIVOT_ULPS = 16.0
 
 
+@raises_documented_errors
 def radial_basis_function_deform_points(
     points: Float[Array, "*batch num_points num_dims"],
     control_points: Float[Array, "*batch num_controls num_dims"],
@@ -94,10 +84,9 @@ def radial_basis_function_deform_points(
             (float weights must match the points dtype; signed and amplifying values are used as
             given).
         implementation: field-evaluation backend: ``"jax"`` (also ``"torch"``), ``"warp"`` or
-            ``None``. The fit is always the JAX solve. ``None`` picks ``"jax"`` on CPU (measured
-            by ``benchmarks/bench_rbf.py``: about 6x faster than the Warp evaluator, whose CPU
-            kernels run on one thread) and ``"warp"`` on GPU when Warp is installed (the
-            reference's rule, not yet measured on a GPU), otherwise ``"jax"``.
+            ``None``. The fit is always the JAX solve. ``None`` picks ``"jax"`` on CPU (where the Warp
+            evaluator's kernels run on one thread; ``benchmarks/bench_rbf.py``) and ``"warp"`` on GPU
+            when Warp is installed (the reference's rule, not yet measured on a GPU), otherwise ``"jax"``.
 
     Returns:
         Deformed points with the shape and dtype of ``points``. Zero controls give the identity.
@@ -115,19 +104,11 @@ def radial_basis_function_deform_points(
             a field.
 
     Differentiability: ``points``, ``control_points``, ``control_displacements`` and float
-    ``point_weights``, through the solve. JAX path: any order, forward and reverse mode, ``jit``,
-    ``vmap``. Warp path: first-order reverse mode (hand-written adjoint kernels), ``jit``, ``vmap``.
+    ``point_weights``, through the solve, with the transforms of the README's "Backends and
+    transforms" (the Warp field has hand-written adjoint kernels; the fit is always JAX).
 
-    Sharding: with inputs split over a mesh with ``Explicit`` axes (``jax.make_mesh``'s
-    default), designs (the leading batch axis) and points are fitted and evaluated shard by shard (a query split alone
-    repeats the small fit on every device) inside
-    ``jax.shard_map`` on both backends (shared inputs replicated, no communication on the way
-    forward; gradients of replicated inputs are summed over devices) and the result keeps the
-    split of ``points``. Under ``Auto`` axes the JAX path is partitioned by XLA and stays local;
-    the Warp kernels are opaque to XLA, which gathers their inputs on every device (correct, not
-    parallel). Under ``Explicit`` axes pass a design batch as the leading axis rather than
-    ``vmap`` over a split axis (Warp's sequential FFI batching is a scan, which JAX refuses
-    there).
+    Sharding: see the README's "Sharding"; designs are fitted and evaluated shard by shard; a
+    query split alone repeats the small fit on every device.
 
     Example:
         >>> import jax.numpy as jnp
@@ -147,16 +128,8 @@ def radial_basis_function_deform_points(
     control_points = check_companion("points", points, "control_points", control_points)
     control_displacements = check_same_shape("control_points", control_points, "control_displacements", control_displacements)
     point_weights = check_point_weights(point_weights, points)
-    implementation = select_implementation(
-        "radial_basis_function_deform_points",
-        implementation,
-        backends=BACKENDS,
-        default=DEFAULT_IMPLEMENTATION,
-        platform=platform_of(points),
-    )
-    fit = ThinPlateSplineFit.fit(
-        control_points, control_displacements, kernel=kernel, polynomial=polynomial, smoothing=smoothing
-    )
+    implementation = select_implementation(_NAME, implementation, platform=platform_of(points))
+    fit = ThinPlateSplineFit.fit(control_points, control_displacements, kernel=kernel, polynomial=polynomial, smoothing=smoothing)
     return fit(points, point_weights=point_weights, implementation=implementation)
 
 
@@ -199,6 +172,7 @@ class ThinPlateSplineFit(eqx.Module):
     batched: bool = eqx.field(static=True)
 
     @classmethod
+    @raises_documented_errors
     def fit(
         cls,
         control_points: Float[Array, "*batch num_controls num_dims"],
@@ -245,10 +219,7 @@ class ThinPlateSplineFit(eqx.Module):
         smoothing = check_real_scalar("smoothing", smoothing, control_points.dtype, nonnegative=True)
         num_controls, num_dims = control_points.shape[-2:]
         if polynomial and 0 < num_controls < num_dims + 1:
-            raise ValueError(
-                f"polynomial=True needs at least D + 1 = {num_dims + 1} control points in {num_dims}-D "
-                f"(or none), got {num_controls}"
-            )
+            raise ValueError(f"polynomial=True needs at least D + 1 = {num_dims + 1} control points in {num_dims}-D (or none), got {num_controls}")
         controls = add_batch_axis(control_points, batched)
         displacements = add_batch_axis(control_displacements, batched)
         if num_controls == 0:
@@ -265,17 +236,12 @@ class ThinPlateSplineFit(eqx.Module):
             smoothing = jnp.asarray(smoothing, controls.dtype)
             # The fit's singularity check (equinox.error_if) needs check_vma off; both inputs are
             # sharded along the design axis, so nothing is replicated.
-            leaves = map_local_shards(
-                lambda c, d: _fit_batch(c, d, smoothing, polynomial), (controls, displacements), (1, 1), out_axes=1, check_vma=False
-            )
+            leaves = map_local_shards(lambda c, d: _fit_batch(c, d, smoothing, polynomial), (controls, displacements), (1, 1), out_axes=1, check_vma=False)
         leaves = tuple(remove_batch_axis(leaf, batched) for leaf in leaves)
         return cls(*leaves, polynomial=polynomial, batched=batched)
 
     def displacement(
-        self,
-        points: Float[Array, "*batch num_points num_dims"],
-        *,
-        implementation: str | None = None,
+        self, points: Float[Array, "*batch num_points num_dims"], *, implementation: str | None = None
     ) -> Float[Array, "*batch num_points num_dims"]:
         """The fitted field ``u(points)`` (not added to the points), shape and dtype of ``points``."""
         points = self._check_points(points)
@@ -304,42 +270,37 @@ class ThinPlateSplineFit(eqx.Module):
         check_companion("points", points, "the fit's control_points", self.normalised_controls)
         return points
 
-    def _implementation(self, points, implementation) -> str:
-        return select_implementation(
-            "ThinPlateSplineFit",
-            implementation,
-            backends=BACKENDS,
-            default=DEFAULT_IMPLEMENTATION,
-            platform=platform_of(points),
-        )
+    def _implementation(self, points, implementation) -> Implementation:
+        return select_implementation(_NAME, implementation, platform=platform_of(points))
 
-    def _field(self, points: jax.Array, implementation: str) -> jax.Array:
+    def _field(self, points: jax.Array, implementation: Implementation) -> jax.Array:
         """``u`` on ``(B, N, D)`` points."""
-        leaves = (
-            add_batch_axis(leaf, self.batched)
-            for leaf in (self.centre, self.scale, self.normalised_controls, self.weights, self.constant, self.linear)
-        )
+        leaves = (add_batch_axis(leaf, self.batched) for leaf in (self.centre, self.scale, self.normalised_controls, self.weights, self.constant, self.linear))
         if points.shape[0] == 0 or points.shape[1] == 0:
             return jnp.zeros(points.shape, points.dtype)
         budget = _BLOCK_BYTES.get(platform_of(points), _DEFAULT_BLOCK_BYTES)
-        return map_local_shards(
-            lambda *arrays: _evaluate(*arrays, implementation, budget), (points, *leaves), (2, 1, 1, 1, 1, 1, 1), out_axes=2
-        )
+        return map_local_shards(lambda *arrays: _evaluate(*arrays, implementation, budget), (points, *leaves), (2, 1, 1, 1, 1, 1, 1), out_axes=2)
 
 
 # -- evaluation --------------------------------------------------------------------------------
 
 
 @eqx.filter_jit
-def _evaluate(points, centre, scale, controls, weights, constant, linear, implementation: str, budget: int):
+def _evaluate(points, centre, scale, controls, weights, constant, linear, implementation: Implementation, budget: int):
     """The field on ``(B, N, D)`` points from batched fit leaves (one compiled program per shape)."""
-    batch, num_points, _ = points.shape
     normalised = (points - centre[:, None, :]) / scale[:, None, None]
-    if implementation == "warp":
+    if implementation.is_warp:
         from warp_ffi.rbf import thin_plate_spline_field
 
-        return thin_plate_spline_field(normalised, controls, weights, constant, linear)
-    block = query_block_size(num_points, batch * controls.shape[1] * points.dtype.itemsize, budget_bytes=budget)
+        jax_field = functools.partial(_jax_field, budget=budget)
+        return implementation.run(thin_plate_spline_field, jax_field, normalised, controls, weights, constant, linear)
+    return _jax_field(normalised, controls, weights, constant, linear, budget=budget)
+
+
+def _jax_field(normalised, controls, weights, constant, linear, *, budget: int) -> jax.Array:
+    """The JAX field on normalised ``(B, N, D)`` points."""
+    batch, num_points, _ = normalised.shape
+    block = query_block_size(num_points, batch * controls.shape[1] * normalised.dtype.itemsize, budget_bytes=budget)
     # Controls as contiguous coordinate rows (D, C): a strided column read inside the pairwise
     # loop costs 25% on CPU; the barrier keeps XLA from folding the transpose back into it.
     controls_t = jax.lax.optimization_barrier(jnp.swapaxes(controls, 1, 2))
@@ -417,20 +378,19 @@ def _checked_symmetric_solve(matrix, rhs):
     tolerance = _PIVOT_ULPS * jnp.finfo(matrix.dtype).eps
     # Strict, so that an all-zero matrix and NaN (a non-finite control layout) count as singular.
     regular = jnp.min(magnitudes) > tolerance * jnp.max(magnitudes)
-    lu = eqx.error_if(
+    lu = runtime_check(
         lu,
         jnp.logical_not(regular),
         "radial_basis_function_deform_points: the thin-plate-spline fit system is singular or not "
         "finite (duplicate control points, controls that do not affinely span R^D, or a single "
         "control without the affine tail and without smoothing)",
+        RuntimeError,
     )
 
     def solve(_, b):
         return jax.scipy.linalg.lu_solve((lu, pivots), b)
 
-    return jax.lax.custom_linear_solve(
-        lambda x: jnp.matmul(matrix, x, precision=jax.lax.Precision.HIGHEST), rhs, solve, symmetric=True
-    )
+    return jax.lax.custom_linear_solve(lambda x: jnp.matmul(matrix, x, precision=jax.lax.Precision.HIGHEST), rhs, solve, symmetric=True)
 
 
 # -- field -------------------------------------------------------------------------------------

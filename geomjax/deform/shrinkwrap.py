@@ -6,36 +6,37 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
+from .._errors import raises_documented_errors
+from .._geometry import closest_point_on_triangle, overflow_safe_norm, triangle_normal
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
 from .._validate import (
     as_float_array,
     check_coordinates,
+    check_index_range,
     check_point_weights,
     check_real_scalar,
     check_same_device,
     check_same_dtype,
     check_topology,
     is_array,
+    require,
 )
-from ..query._triangle import closest_point_on_triangle, triangle_normal
 
 __all__ = ["shrinkwrap_points", "valid_triangles", "face_features", "nearest_faces_jax"]
 
 _NAME = "shrinkwrap_points"
 
-# Search backend per platform (see the docstring): a BVH everywhere, never the O(N F) brute force.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp", "gpu": "warp"}
 
 # Far queries are clipped to this search-frame magnitude so squared float32 distances stay finite.
 _SEARCH_CLIP = 2.0**60
 _NO_GATE = 1e30
 
 
+@raises_documented_errors
 def shrinkwrap_points(
     points: Float[Array, "*batch num_points 3"],
     target_points: Float[Array, "num_target_points 3"],
@@ -82,10 +83,8 @@ def shrinkwrap_points(
             about twice the cost of one BVH query. ``"jax"``: brute force over every
             point/face pair, ``O(N F)``, blocked to bounded memory; meant as the reference for
             small meshes. ``None`` picks the BVH (``"warp"``) on every platform when warp-lang
-            is installed, ``"jax"`` otherwise: ``benchmarks/bench_shrinkwrap_voxel.py`` (CPU,
-            100,000 points on an 81,920-triangle sphere, BVH built in the call) measures the
-            float32 search 1.3x faster than Open3D's ``compute_closest_points`` (the exact
-            float64 search: 0.9x), where brute force would measure 8e9 point/face pairs.
+            is installed, ``"jax"`` otherwise (``benchmarks/bench_shrinkwrap_voxel.py`` compares
+            it with Open3D's ``compute_closest_points``; brute force is quadratic).
         bvh: optional :class:`geomjax.MeshBVH` built from ``(target_points, target_faces)``
             (an addition to the reference API): the Warp search reuses it instead of building a
             BVH per call, e.g. in optimisation loops (``bvh.refit`` after moving the target).
@@ -134,9 +133,7 @@ def shrinkwrap_points(
     check_same_dtype("points", points, "target_points", target_points)
     check_same_device("points", points, "target_points", target_points)
     if target_points.ndim != 2 or target_points.shape[1] != 3:
-        raise ValueError(
-            f"target_points must have shape (M, 3) (one target shared by every batch), got {tuple(target_points.shape)}"
-        )
+        raise ValueError(f"target_points must have shape (M, 3) (one target shared by every batch), got {tuple(target_points.shape)}")
     target_faces = check_topology("target_faces", target_faces, points, vertices_per_row=(3,))
     if target_faces.shape[0] == 0:
         raise ValueError("target_faces must hold at least one triangle, got shape (0, 3)")
@@ -145,15 +142,16 @@ def shrinkwrap_points(
     offset = _offset_array(offset, points)
     if max_distance is not None:
         max_distance = check_real_scalar("max_distance", max_distance, dtype, positive=True)
-    backend = select_implementation(
-        _NAME, implementation, backends=("jax", "warp"), default=DEFAULT_IMPLEMENTATION, platform=platform_of(points)
-    )
+    backend = select_implementation(_NAME, implementation, platform=platform_of(points))
     if bvh is not None:
         _check_bvh(bvh, target_points, target_faces)
 
-    faces = _checked_faces(target_faces, target_points.shape[0])
-    points = _require(points, lambda x: jnp.all(jnp.isfinite(x)), "points must be finite")
-    valid = _require(valid_triangles(target_points, faces), jnp.any, "target_points/target_faces hold no valid triangle (all are degenerate or non-finite)")
+    num_targets = target_points.shape[0]
+    faces = check_index_range(target_faces, num_targets, f"{_NAME}: target_faces indices must be in [0, {num_targets}) for {num_targets} target points")
+    points = require(points, lambda x: jnp.all(jnp.isfinite(x)), f"{_NAME}: points must be finite")
+    valid = require(
+        valid_triangles(target_points, faces), jnp.any, f"{_NAME}: target_points/target_faces hold no valid triangle (all are degenerate or non-finite)"
+    )
     if points.shape[-2] == 0:
         return points
     x = add_batch_axis(points, batched)
@@ -167,7 +165,7 @@ def shrinkwrap_points(
 def _shrinkwrap(x, target_points, faces, valid, offset, weights, max_distance, bvh, *, backend):
     """Search (no gradient) and replay on normalised ``(B, N, 3)`` points (``max_distance``: 0-d or None)."""
     queries = x.reshape(-1, 3)
-    if backend == "warp":
+    if backend.is_warp:
         nearest = _nearest_faces_warp(queries, target_points, faces, valid, max_distance, bvh)
     else:
         nearest = nearest_faces_jax(queries, target_points, faces, valid)
@@ -186,34 +184,7 @@ def _offset_array(offset, points: jax.Array) -> jax.Array:
     check_same_device("points", points, "offset", offset)
     if offset.ndim != 0:
         raise ValueError(f"offset must be a Python real or a 0-d array, got shape {tuple(offset.shape)}")
-    return _require(offset, jnp.isfinite, "offset must be finite")
-
-
-def _require(x: jax.Array, predicate, message: str) -> jax.Array:
-    """``x`` after checking ``predicate(x)``: eagerly (``ValueError``) or by ``error_if`` when traced."""
-    ok = predicate(x)
-    if isinstance(ok, jax.core.Tracer):
-        import equinox as eqx
-
-        return eqx.error_if(x, jnp.logical_not(ok), f"{_NAME}: {message}")
-    if not bool(ok):
-        raise ValueError(f"{_NAME}: {message}")
-    return x
-
-
-def _checked_faces(faces: jax.Array, num_vertices: int) -> jax.Array:
-    """In-range int32 faces: checked eagerly on concrete input, else ``error_if`` and clamped."""
-    if not isinstance(faces, jax.core.Tracer):
-        host = np.asarray(faces)
-        if host.size and (host.min() < 0 or host.max() >= num_vertices):
-            raise ValueError(
-                f"target_faces indices must be in [0, {num_vertices}) for {num_vertices} target points, "
-                f"got values in [{host.min()}, {host.max()}]"
-            )
-        return jnp.asarray(faces, jnp.int32)
-    faces = _require(faces, lambda f: jnp.all((f >= 0) & (f < num_vertices)), f"target_faces indices must be in [0, {num_vertices})")
-    # The kernels must never read out of bounds, even before the runtime check reports.
-    return jnp.clip(faces, 0, max(num_vertices - 1, 0)).astype(jnp.int32)
+    return require(offset, jnp.isfinite, f"{_NAME}: offset must be finite")
 
 
 def _check_bvh(bvh, target_points: jax.Array, target_faces: jax.Array) -> None:
@@ -386,15 +357,6 @@ def _morton_codes(unit_points: jax.Array) -> jax.Array:
 # The projection, replayed in JAX on the selected faces (this is what is differentiated).
 
 
-def _norm(v: jax.Array) -> jax.Array:
-    """Euclidean norm over the last axis without overflow or underflow (not differentiated)."""
-    v = jax.lax.stop_gradient(v)
-    largest = jnp.max(jnp.abs(v), axis=-1)
-    ok = largest > 0
-    safe = jnp.where(ok, largest, jnp.ones((), v.dtype))
-    return jnp.where(ok, safe * jnp.sqrt(jnp.sum(jnp.square(v / safe[..., None]), axis=-1)), 0)
-
-
 def _projection_field(x, vertices, faces, nearest, fallback, offset, max_distance):
     """``p + offset n - x`` on the selected faces, zero for misses and gated points."""
     hit = nearest >= 0
@@ -403,6 +365,7 @@ def _projection_field(x, vertices, faces, nearest, fallback, offset, max_distanc
     a, b, c = vertices[face[..., 0]], vertices[face[..., 1]], vertices[face[..., 2]]
     closest, _ = closest_point_on_triangle(x, a, b, c)
     if max_distance is not None:
-        hit = hit & (_norm(x - closest) < max_distance)
+        # The gate is configuration, not differentiated.
+        hit = hit & (overflow_safe_norm(jax.lax.stop_gradient(x - closest)) < max_distance)
     target = closest + offset * triangle_normal(a, b, c)
     return jnp.where(hit[..., None], target - x, jnp.zeros((), x.dtype))

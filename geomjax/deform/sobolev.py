@@ -13,11 +13,15 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._dispatch import platform_of, select_implementation
+from .._errors import raises_documented_errors, runtime_check
 from .._points import add_batch_axis, remove_batch_axis
 from .._sharding import map_local_shards
 from .._validate import (
     as_index_array,
     check_coordinates,
+    check_host_index_range,
+    check_index_range,
+    check_one_per_point,
     check_real_scalar,
     check_same_device,
     check_same_shape,
@@ -41,10 +45,6 @@ from ..linalg import (
 
 __all__ = ["sobolev_deform_points"]
 
-# Faster backend per platform, as measured by benchmarks/bench_sobolev.py (see the docstring).
-# GPUs are unmeasured (no GPU was available), so they keep the portable path.
-DEFAULT_IMPLEMENTATION = {"cpu": "jax"}
-
 DEFAULT_TOLERANCE = {jnp.dtype(jnp.float32): 1e-6, jnp.dtype(jnp.float64): 1e-10}
 WARP_MAX_CELL_POINTS = 4  # segments, triangles, tetrahedra
 
@@ -52,6 +52,7 @@ _NAME = "sobolev_deform_points"
 _DEGENERATE = "cells must be finite, nondegenerate simplices (every Gram determinant finite and > 0 when length_scale > 0)"
 
 
+@raises_documented_errors
 def sobolev_deform_points(
     points: Float[Array, "*batch num_points num_dims"],
     cells: Int[Array, "num_cells num_cell_points"],
@@ -95,15 +96,14 @@ def sobolev_deform_points(
         tolerance: relative residual tolerance ``> 0``; ``None`` means ``1e-6`` (float32) or
             ``1e-10`` (float64).
         implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. ``None`` picks
-            ``"jax"`` on CPU: on the 40,962-vertex sphere of ``benchmarks/bench_sobolev.py`` it is
-            5-9x faster than the Warp path (whose CPU kernels are slow) and, using both cores,
-            faster than scipy's Jacobi-CG on a preassembled matrix (on par on one core). With
-            concrete ``cells`` the JAX path assembles the operator into padded rows from a
-            host-side pattern (cached per topology), so each CG product is a few gathers; with
-            traced ``cells`` (an argument of ``jit``) it falls back to per-cell scatters, which
-            make a CPU solve 4-5x slower. GPUs keep ``"jax"`` until measured there. The Warp path
-            (segments, triangles and tetrahedra) runs the same solver with Warp stiffness
-            products (deterministic per-vertex gathers, both CPU cores).
+            ``"jax"`` on CPU, where it beats the Warp path (whose CPU kernels are slow) and, using both
+            cores, scipy's Jacobi-CG on a preassembled matrix (``benchmarks/bench_sobolev.py``). With
+            concrete ``cells`` the JAX path assembles the operator into padded rows from a host-side
+            pattern (cached per topology), so each CG product is a few gathers; with traced ``cells``
+            (an argument of ``jit``) it falls back to per-cell scatters, which make a CPU solve several
+            times slower. GPUs keep ``"jax"`` until measured there. The Warp path (segments, triangles
+            and tetrahedra) runs the same solver with Warp stiffness products (deterministic per-vertex
+            gathers, both CPU cores).
 
     Returns:
         Deformed points, same shape and dtype as ``points``.
@@ -118,8 +118,9 @@ def sobolev_deform_points(
             indices outside ``[0, N)`` and degenerate or non-finite cells ("cells must be
             finite, nondegenerate simplices"). These value checks run eagerly (host sync) when
             the arrays are concrete; on traced arrays (inside ``jit``, ``vmap`` over points) they
-            become ``equinox.error_if`` checks that raise a ``RuntimeError`` with the same message
-            when the computation runs.
+            become ``equinox.error_if`` checks that raise this ``ValueError`` with the same
+            message when the computation runs (under a user's own ``jit``: JAX's runtime error
+            carrying the message).
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
         RuntimeError: the solve did not converge within ``max_iterations`` or broke down
@@ -127,15 +128,13 @@ def sobolev_deform_points(
             solves of a gradient: an inexact implicit gradient is never returned.
 
     Differentiable in ``points`` (through the operator and the mass) and ``displacement``, by the
-    implicit function theorem (an adjoint solve, never unrolled CG iterations). The JAX path
-    supports ``jit``, ``vmap``, ``grad`` and ``jvp`` (through ``lineax.linear_solve``); the Warp
-    path supports ``jit``, ``vmap`` and first-order reverse mode (a solve-level ``custom_vjp``).
-    No gradient flows to ``cells``, ``fixed_points``, ``length_scale`` or ``tolerance``.
+    implicit function theorem (an adjoint solve, never unrolled CG iterations): ``grad`` and
+    ``jvp`` through ``lineax.linear_solve`` on the JAX path, a solve-level ``custom_vjp`` on the
+    Warp path (README, "Backends and transforms"). No gradient flows to ``cells``,
+    ``fixed_points``, ``length_scale`` or ``tolerance``.
 
-    Sharding: designs split over a mesh with ``Explicit`` axes (``jax.make_mesh``'s default) are
-    solved shard by shard on the Warp path (``jax.shard_map``), keeping the split; the JAX path
-    fails there (its per-design loop is a scan over the split axis, which JAX refuses). Under
-    ``Auto`` axes both paths give the unsharded result (XLA gathers the Warp path's inputs).
+    Sharding: see the README's "Sharding"; under ``Explicit`` axes only the Warp path solves
+    shard by shard; the JAX path needs ``Auto`` axes.
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -161,13 +160,13 @@ def sobolev_deform_points(
     else:
         tolerance = check_real_scalar("tolerance", tolerance, dtype, positive=True)
     backend = select_implementation(
-        _NAME, implementation, backends=("jax", "warp"), default=DEFAULT_IMPLEMENTATION, platform=platform_of(points)
+        _NAME,
+        implementation,
+        platform=platform_of(points),
+        warp_unsupported=None
+        if cells.shape[1] <= WARP_MAX_CELL_POINTS
+        else f"supports segments, triangles and tetrahedra (V <= {WARP_MAX_CELL_POINTS}); got cells with V={cells.shape[1]}",
     )
-    if backend == "warp" and cells.shape[1] > WARP_MAX_CELL_POINTS:
-        raise ValueError(
-            f"implementation='warp' supports segments, triangles and tetrahedra (V <= {WARP_MAX_CELL_POINTS}); "
-            f"got cells with V={cells.shape[1]}; use implementation='jax'"
-        )
 
     x = add_batch_axis(points, batched)
     d = add_batch_axis(displacement, batched)
@@ -180,37 +179,28 @@ def sobolev_deform_points(
     pattern = None
     if concrete_cells:
         host_cells = np.asarray(cells)
-        _check_index_range(host_cells, num_points)
+        check_host_index_range(host_cells, num_points, _index_range_message(num_points))
         if x.size and cells.shape[0] and not isinstance(x, jax.core.Tracer):
             _check_nondegenerate(x, cells)
-        if backend == "jax" and cells.shape[0]:
+        if not backend.is_warp and cells.shape[0]:
             pattern = row_pattern(host_cells, num_points)
-    try:
-        deform = functools.partial(
-            _deform,
-            pattern=pattern,
-            length_scale_squared=jnp.asarray(length_scale * length_scale, dtype),
-            tolerance=jnp.asarray(tolerance, dtype),
-            max_iterations=max_iterations,
-            backend=backend,
-            check_indices=not concrete_cells,
-        )
-        if backend == "warp":
-            # Designs are solved independently: explicitly split ones shard by shard (see
-            # _sharding). The solver's error_if needs check_vma off, which is safe as only the
-            # integer cells and non-differentiated constants are replicated. (The JAX path's
-            # lineax solve rejects the per-shard types, see the docstring.)
-            out = map_local_shards(deform, (x, cells, d, free), (1, 0, 1, 1), out_axes=1, check_vma=False)
-        else:
-            out = deform(x, cells, d, free)
-    except ValueError as error:
-        # A failed runtime check (equinox.error_if) in an executable that already ran once comes
-        # back from JAX's C++ dispatch path as ValueError("INTERNAL: CpuCallback error ..."),
-        # where a first run reports a JaxRuntimeError: eager calls always raise RuntimeError.
-        message = next((line for line in str(error).splitlines() if line.startswith(f"_EquinoxRuntimeError: {_NAME}")), None)
-        if message is None:
-            raise
-        raise RuntimeError(message.removeprefix("_EquinoxRuntimeError: ")) from error
+    deform = functools.partial(
+        _deform,
+        pattern=pattern,
+        length_scale_squared=jnp.asarray(length_scale * length_scale, dtype),
+        tolerance=jnp.asarray(tolerance, dtype),
+        max_iterations=max_iterations,
+        backend=backend,
+        check_indices=not concrete_cells,
+    )
+    if backend.is_warp:
+        # Designs are solved independently: explicitly split ones shard by shard (see
+        # _sharding). The solver's error_if needs check_vma off, which is safe as only the
+        # integer cells and non-differentiated constants are replicated. (The JAX path's
+        # lineax solve rejects the per-shard types, see the docstring.)
+        out = map_local_shards(deform, (x, cells, d, free), (1, 0, 1, 1), out_axes=1, check_vma=False)
+    else:
+        out = deform(x, cells, d, free)
     return remove_batch_axis(out, batched)
 
 
@@ -241,12 +231,7 @@ def _free_mask(fixed_points, points: jax.Array) -> jax.Array | None:
     if not is_array(fixed_points) or jnp.dtype(fixed_points.dtype) != jnp.dtype(bool):
         kind = jnp.dtype(fixed_points.dtype) if is_array(fixed_points) else type(fixed_points).__name__
         raise TypeError(f"fixed_points must be None or a bool array, got {kind}")
-    fixed_points = jnp.asarray(fixed_points)
-    check_same_device("points", points, "fixed_points", fixed_points)
-    expected = tuple(points.shape[:-1])
-    if tuple(fixed_points.shape) != expected:
-        raise ValueError(f"fixed_points must have shape {expected} (one flag per point, no broadcasting), got {tuple(fixed_points.shape)}")
-    return ~fixed_points
+    return ~check_one_per_point("fixed_points", fixed_points, points, "flag")
 
 
 def _check_max_iterations(max_iterations) -> int:
@@ -257,12 +242,8 @@ def _check_max_iterations(max_iterations) -> int:
     return int(max_iterations)
 
 
-def _check_index_range(cells: np.ndarray, num_points: int) -> None:
-    if cells.size and (cells.min() < 0 or cells.max() >= num_points):
-        raise ValueError(
-            f"cells indices must be in [0, {num_points}) for {num_points} points, "
-            f"got values in [{cells.min()}, {cells.max()}]"
-        )
+def _index_range_message(num_points: int) -> str:
+    return f"{_NAME}: cells indices must be in [0, {num_points}) for {num_points} points"
 
 
 @jax.jit
@@ -292,26 +273,33 @@ def _deform(points, cells, displacement, free, pattern, length_scale_squared, to
     """``x + u`` for ``(B, N, D)`` inputs, ``l > 0``; index and degeneracy checks under ``error_if``."""
     num_points = points.shape[1]
     if check_indices:
-        in_range = jnp.all((cells >= 0) & (cells < num_points))
-        cells = eqx.error_if(cells, ~in_range, f"{_NAME}: cells indices must be in [0, {num_points}) for {num_points} points")
-        cells = jnp.clip(cells, 0, max(num_points - 1, 0))
+        cells = check_index_range(cells, num_points, _index_range_message(num_points))
     if points.size == 0 or cells.shape[0] == 0:
         # Nothing to smooth: every point is isolated and keeps its (masked) displacement.
         return points + _masked(displacement, free)
     cells = cells.astype(jnp.int32)
-    if backend == "warp":
-        referenced, field = _warp_field(points, displacement, free, cells, length_scale_squared, tolerance, max_iterations)
-    else:
-        referenced = referenced_vertices(cells, num_points) if pattern is None else pattern.referenced
-        num_referenced = jnp.sum(referenced, dtype=jnp.int32)
-        solve = functools.partial(
-            _jax_solve, cells=cells, pattern=pattern, num_referenced=num_referenced,
-            length_scale_squared=length_scale_squared, tolerance=tolerance, max_iterations=max_iterations,
+    if backend.is_warp:
+        referenced, field = backend.run(
+            functools.partial(_warp_field, max_iterations=max_iterations),
+            functools.partial(_jax_field, pattern=None, max_iterations=max_iterations),
+            points, displacement, free, cells, length_scale_squared, tolerance,
         )  # fmt: skip
-        field = _one_by_one(solve, points, displacement, free)
+    else:
+        referenced, field = _jax_field(points, displacement, free, cells, length_scale_squared, tolerance, pattern=pattern, max_iterations=max_iterations)
     # Unreferenced rows decouple (m̄ u = m̄ d): make them exact whatever the solver's start.
     field = jnp.where(referenced[:, None], field, displacement)
     return points + _masked(field, free)
+
+
+def _jax_field(points, displacement, free, cells, length_scale_squared, tolerance, *, pattern: RowPattern | None, max_iterations):
+    """``(referenced, u)`` on the JAX path: which vertices a cell references, and the field."""
+    referenced = referenced_vertices(cells, points.shape[1]) if pattern is None else pattern.referenced
+    num_referenced = jnp.sum(referenced, dtype=jnp.int32)
+    solve = functools.partial(
+        _jax_solve, cells=cells, pattern=pattern, num_referenced=num_referenced,
+        length_scale_squared=length_scale_squared, tolerance=tolerance, max_iterations=max_iterations,
+    )  # fmt: skip
+    return referenced, _one_by_one(solve, points, displacement, free)
 
 
 def _one_by_one(solve, points, displacement, free):
@@ -330,7 +318,7 @@ def _one_by_one(solve, points, displacement, free):
 def _checked_stiffness(points, cells):
     local, measures, determinants = simplex_stiffness(points, cells)
     valid = jnp.all(jnp.isfinite(determinants) & (determinants > 0))
-    return eqx.error_if(local, ~valid, f"{_NAME}: {_DEGENERATE}"), measures
+    return runtime_check(local, ~valid, f"{_NAME}: {_DEGENERATE}"), measures
 
 
 # ---------------------------------------------------------------------------------------------
@@ -348,10 +336,7 @@ def _jax_solve(points, displacement, free, *, cells, pattern: RowPattern | None,
     mass = uniform_lumped_mass(measures, num_referenced)
     operator = HelmholtzOperator(stiffness, mass, length_scale_squared, free)
     rhs = _masked(mass * displacement, free)
-    options = {
-        "inverse_diagonal": jax.lax.stop_gradient(operator.inverse_diagonal()),
-        "y0": jax.lax.stop_gradient(_masked(displacement, free)),
-    }
+    options = {"inverse_diagonal": jax.lax.stop_gradient(operator.inverse_diagonal()), "y0": jax.lax.stop_gradient(_masked(displacement, free))}
     solver = JacobiPCG(tolerance, max_iterations, _NAME)
     structure = jax.ShapeDtypeStruct(points.shape, points.dtype)
     return lx.linear_solve(operator.as_linear_operator(structure), rhs, solver, options=options).value
@@ -378,12 +363,13 @@ class _WarpStiffness(eqx.Module):
         return stiffness_diagonal(self.off_diagonal, self.cells, self.offsets, self.order)
 
 
-def _warp_field(points, displacement, free, cells, length_scale_squared, tolerance, max_iterations):
+def _warp_field(points, displacement, free, cells, length_scale_squared, tolerance, *, max_iterations):
     from warp_ffi.sobolev import vertex_incidence
 
     incidence = vertex_incidence(cells, points.shape[1])
     referenced = jnp.diff(incidence[0]) > 0
     num_referenced = jnp.sum(referenced, dtype=jnp.int32)
+
     def solve(x, d, f):
         return _warp_solve(x, d, f, cells, incidence, num_referenced, length_scale_squared, tolerance, max_iterations)
 

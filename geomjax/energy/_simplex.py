@@ -21,11 +21,21 @@ import math
 
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
 
-from .._dispatch import platform_of, select_implementation
+from .._dispatch import Implementation, platform_of, select_implementation
 from .._points import add_batch_axis
 from .._sharding import map_local_shards
 from .._validate import check_choice, check_coordinates, check_same_shape, check_topology
+
+# The calling convention all six energies share (the reference API's): current and rest points of
+# one shape, shared integer topology, the op's options, ``reduction`` and ``implementation``.
+Points = Float[Array, "*batch num_points num_dims"]
+SurfacePoints = Float[Array, "*batch num_points 3"]
+Cells = Int[Array, "num_cells simplex_vertices"]
+Triangles = Int[Array, "num_triangles 3"]
+Hinges = Int[Array, "num_hinges 4"]
+Energy = Float[Array, "..."]
 
 REDUCTIONS = ("none", "sum", "mean")
 SIMPLEX_VERTICES = (2, 3, 4)  # edges, triangles, tetrahedra
@@ -68,19 +78,15 @@ def require_three_dims(op_name: str, points: jax.Array) -> None:
         raise ValueError(f"{op_name} needs points with D = 3 coordinates, got D={points.shape[-1]}")
 
 
-def select_energy_backend(op_name: str, implementation, points: jax.Array, default) -> str:
+def select_energy_backend(op_name: str, implementation, points: jax.Array) -> Implementation:
     """Resolve ``implementation``; Warp kernels handle ``D <= 3`` only.
 
     ``None`` falls back to JAX for ``D > 3``; an explicit ``"warp"`` with ``D > 3`` is a
     ``ValueError``.
     """
-    backend = select_implementation(op_name, implementation, backends=("jax", "warp"), default=default, platform=platform_of(points))
     num_dims = points.shape[-1]
-    if backend == "warp" and num_dims > WARP_MAX_DIMS:
-        if implementation is None:
-            return "jax"
-        raise ValueError(f"{op_name}: implementation='warp' supports D <= {WARP_MAX_DIMS} coordinates, got D={num_dims}")
-    return backend
+    unsupported = f"supports D <= {WARP_MAX_DIMS} coordinates, got D={num_dims}" if num_dims > WARP_MAX_DIMS else None
+    return select_implementation(op_name, implementation, platform=platform_of(points), warp_unsupported=unsupported)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -171,8 +177,7 @@ def dot(a: jax.Array, b: jax.Array) -> jax.Array:
 
 def cross(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.stack(
-        [a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2], a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]],
-        axis=-1,
+        [a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2], a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1
     )
 
 
@@ -240,21 +245,29 @@ def simplex_measures(points: jax.Array, reference_points: jax.Array, cells: jax.
     return jnp.where(valid, measure, jnp.nan), jnp.where(valid, reference_measure, jnp.nan)
 
 
-def cell_measures(points: jax.Array, reference_points: jax.Array, cells: jax.Array, backend: str) -> tuple[jax.Array, jax.Array]:
-    """:func:`simplex_measures` on the chosen backend, with the static edge cases.
+def row_terms(points: jax.Array, reference_points: jax.Array, topology: jax.Array, backend: Implementation, warp_terms, jax_terms, *, num_outputs: int = 1):
+    """Per-row values ``(B, M)`` of ``jax_terms`` (or ``warp_terms`` on Warp) with the static edge cases.
 
-    No cells or no batch items give empty arrays; no points (with cells) give NaN everywhere.
+    ``jax_terms`` and ``warp_terms`` map ``(B, N, D)`` points, their reference and the ``(M, K)``
+    topology to ``num_outputs`` arrays ``(B, M)``. No rows or no batch items give zeros (so sums
+    are 0); no points, with rows, give NaN everywhere, because every index is then out of range.
     """
-    shape = (points.shape[0], cells.shape[0])
-    if shape[0] * shape[1] == 0:
-        empty = jnp.zeros(shape, points.dtype)
-        return empty, empty
-    if points.shape[1] == 0:
-        missing = nan_terms(shape, points.dtype)
-        return missing, missing
-    if backend == "warp":
-        from warp_ffi.measure import simplex_measures as warp_simplex_measures
+    shape = (points.shape[0], topology.shape[0])
+    if shape[0] * shape[1] == 0 or points.shape[1] == 0:
+        filled = jnp.zeros(shape, points.dtype) if shape[0] * shape[1] == 0 else nan_terms(shape, points.dtype)
+        return filled if num_outputs == 1 else (filled,) * num_outputs
+    if backend.is_warp:
+        # Per design: explicitly sharded designs are computed shard by shard (see _sharding).
+        return map_local_shards(lambda p, r, t: backend.run(warp_terms, jax_terms, p, r, t), (points, reference_points, topology), (1, 1, 0), out_axes=1)
+    return jax_terms(points, reference_points, topology)
 
-        # Per design: explicitly sharded designs are measured shard by shard (see _sharding).
-        return map_local_shards(warp_simplex_measures, (points, reference_points, cells), (1, 1, 0), out_axes=1)
-    return simplex_measures(points, reference_points, cells)
+
+def _warp_simplex_measures(points, reference_points, cells):
+    from warp_ffi.measure import simplex_measures as warp_simplex_measures
+
+    return warp_simplex_measures(points, reference_points, cells)
+
+
+def cell_measures(points: jax.Array, reference_points: jax.Array, cells: jax.Array, backend: Implementation) -> tuple[jax.Array, jax.Array]:
+    """:func:`simplex_measures` on the chosen backend, with the static edge cases of :func:`row_terms`."""
+    return row_terms(points, reference_points, cells, backend, _warp_simplex_measures, simplex_measures, num_outputs=2)

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
 
+from .._errors import raises_documented_errors
 from .._points import remove_batch_axis
-from .._sharding import map_local_shards
 from ._simplex import (
+    Energy,
+    Hinges,
+    SurfacePoints,
     all_finite,
     check_energy_inputs,
     check_reduction,
@@ -16,27 +18,19 @@ from ._simplex import (
     dot,
     gather_vertices,
     keep_or,
-    nan_terms,
     reduce_terms,
     require_three_dims,
+    row_terms,
     select_energy_backend,
 )
 
 __all__ = ["surface_bending_energy"]
 
-# Faster backend per platform, as measured by benchmarks/bench_energy.py (see the docstring).
-# GPUs are unmeasured (no GPU was available), so they keep the portable path.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp"}
 
-
+@raises_documented_errors
 def surface_bending_energy(
-    points: Float[Array, "*batch num_points 3"],
-    reference_points: Float[Array, "*batch num_points 3"],
-    hinges: Int[Array, "num_hinges 4"],
-    *,
-    reduction: str = "sum",
-    implementation: str | None = None,
-) -> Float[Array, "..."]:
+    points: SurfacePoints, reference_points: SurfacePoints, hinges: Hinges, *, reduction: str = "sum", implementation: str | None = None
+) -> Energy:
     r"""Discrete bending energy of triangle hinges relative to their rest dihedral angles.
 
     A hinge row ``(i, j, k, l)`` denotes the consistently oriented faces ``(i, j, k)`` and
@@ -61,9 +55,8 @@ def surface_bending_energy(
         reduction: ``"none"`` (``(H,)`` or ``(B, H)``), ``"sum"`` or ``"mean"`` (sum over
             ``max(count, 1)``). No hinges give ``0`` for ``"sum"`` and ``"mean"``.
         implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. ``None`` picks
-            Warp on CPU when warp-lang is installed (``benchmarks/bench_energy.py``: forward
-            plus backward 4-5x faster than JAX on 122,880 float64 hinges and two CPU cores),
-            else ``"jax"`` (also on GPU, where it is not yet measured).
+            Warp on CPU when warp-lang is installed, else ``"jax"`` (also on GPU, where it is not yet
+            measured); ``benchmarks/bench_energy.py`` holds the figures.
 
     Returns:
         Per-hinge terms or a scalar according to ``reduction``, dtype of ``points``.
@@ -78,15 +71,10 @@ def surface_bending_energy(
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
-    Differentiable in ``points`` and ``reference_points`` (except at the branch cut of the
-    wrapped angle). The JAX path supports ``jit``, ``vmap`` and derivatives of any order; the
-    Warp path supports ``jit``, ``vmap`` and first-order reverse mode (closed-form adjoint).
-
-    Sharding: designs split over a mesh with ``Explicit`` axes run the Warp kernel shard by shard
-    (``jax.shard_map``), keeping the split; the JAX path is partitioned by XLA under any mesh.
-    Under ``Auto`` axes XLA gathers the Warp kernel's inputs on every device (correct, not
-    parallel). ``vmap`` over an explicitly split axis works on the JAX path only; on the Warp path
-    pass the designs as the leading axis.
+    Differentiable in ``points`` and ``reference_points`` except at the branch cut of the
+    wrapped angle; the Warp adjoint is closed-form. See the README's "Backends and transforms"
+    for what each backend differentiates and "Sharding" for designs split over devices (the
+    Warp kernel runs shard by shard).
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -98,26 +86,19 @@ def surface_bending_energy(
         >>> print(np.round(float(energy), 6), np.round(np.pi**2 / 32, 6))
         0.308425 0.308425
     """
-    points, reference_points, hinges, batched = check_energy_inputs(
-        points, reference_points, hinges, topology_name="hinges", vertices_per_row=(4,)
-    )
+    points, reference_points, hinges, batched = check_energy_inputs(points, reference_points, hinges, topology_name="hinges", vertices_per_row=(4,))
     require_three_dims("surface_bending_energy", points)
     check_reduction(reduction)
-    backend = select_energy_backend("surface_bending_energy", implementation, points, DEFAULT_IMPLEMENTATION)
+    backend = select_energy_backend("surface_bending_energy", implementation, points)
 
-    num_batch, num_points, _ = points.shape
-    shape = (num_batch, hinges.shape[0])
-    if num_batch * hinges.shape[0] == 0:
-        terms = jnp.zeros(shape, points.dtype)
-    elif num_points == 0:
-        terms = nan_terms(shape, points.dtype)
-    elif backend == "warp":
-        from warp_ffi.bending import surface_bending_terms
-
-        terms = map_local_shards(surface_bending_terms, (points, reference_points, hinges), (1, 1, 0), out_axes=1)
-    else:
-        terms = bending_terms(points, reference_points, hinges)
+    terms = row_terms(points, reference_points, hinges, backend, _warp_bending_terms, bending_terms)
     return reduce_terms(remove_batch_axis(terms, batched), reduction)
+
+
+def _warp_bending_terms(points, reference_points, hinges):
+    from warp_ffi.bending import surface_bending_terms
+
+    return surface_bending_terms(points, reference_points, hinges)
 
 
 def _hinge_vectors(vertices: list[jax.Array]) -> list[jax.Array]:

@@ -3,35 +3,19 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
 
+from .._errors import raises_documented_errors
 from .._points import remove_batch_axis
 from .._validate import check_real_scalar
-from ._simplex import (
-    SIMPLEX_VERTICES,
-    cell_measures,
-    check_energy_inputs,
-    check_reduction,
-    reduce_terms,
-    select_energy_backend,
-)
+from ._simplex import SIMPLEX_VERTICES, Cells, Energy, Points, cell_measures, check_energy_inputs, check_reduction, reduce_terms, select_energy_backend
 
 __all__ = ["simplex_inversion_energy"]
 
-# Faster backend per platform, as measured by benchmarks/bench_energy.py (see the docstring).
-# GPUs are unmeasured (no GPU was available), so they keep the portable path.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp"}
 
-
+@raises_documented_errors
 def simplex_inversion_energy(
-    points: Float[Array, "*batch num_points num_dims"],
-    reference_points: Float[Array, "*batch num_points num_dims"],
-    cells: Int[Array, "num_cells simplex_vertices"],
-    *,
-    minimum_jacobian: float = 0.1,
-    reduction: str = "sum",
-    implementation: str | None = None,
-) -> Float[Array, "..."]:
+    points: Points, reference_points: Points, cells: Cells, *, minimum_jacobian: float = 0.1, reduction: str = "sum", implementation: str | None = None
+) -> Energy:
     r"""Penalise full-dimensional cells whose signed Jacobian falls below a threshold.
 
     Each term is ``(1/2) V_0 max(0, J_min - J)^2`` with ``J = det E / det E_0`` (consecutive
@@ -50,9 +34,8 @@ def simplex_inversion_energy(
         reduction: ``"none"`` (``(M,)`` or ``(B, M)``), ``"sum"`` or ``"mean"`` (sum over
             ``max(count, 1)``). No cells give ``0`` for ``"sum"`` and ``"mean"``.
         implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. ``None`` picks
-            Warp on CPU when warp-lang is installed (``benchmarks/bench_energy.py``: forward
-            plus backward 5-7x faster than JAX on 196,608 float64 tetrahedra and two CPU
-            cores), else ``"jax"`` (also on GPU, not yet measured).
+            Warp on CPU when warp-lang is installed (``benchmarks/bench_energy.py``), else ``"jax"``
+            (also on GPU, not yet measured).
 
     Returns:
         Per-cell terms or a scalar according to ``reduction``, dtype of ``points``.
@@ -69,15 +52,9 @@ def simplex_inversion_energy(
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
-    Differentiable in ``points`` and ``reference_points``. The JAX path supports ``jit``,
-    ``vmap`` and derivatives of any order (away from the threshold for the second); the Warp
-    path supports ``jit``, ``vmap`` and first-order reverse mode (hand-written adjoint).
-
-    Sharding: designs split over a mesh with ``Explicit`` axes run the Warp kernel shard by shard
-    (``jax.shard_map``), keeping the split; the JAX path is partitioned by XLA under any mesh.
-    Under ``Auto`` axes XLA gathers the Warp kernel's inputs on every device (correct, not
-    parallel). ``vmap`` over an explicitly split axis works on the JAX path only; on the Warp path
-    pass the designs as the leading axis.
+    Differentiable in ``points`` and ``reference_points``; on the JAX path to any order (away
+    from the threshold for the second); see the README's "Backends and transforms" for what each backend differentiates and
+    "Sharding" for designs split over devices (the Warp kernel runs shard by shard).
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -88,9 +65,7 @@ def simplex_inversion_energy(
         >>> print(np.round(float(simplex_inversion_energy(flipped, rest, cells, implementation="jax")), 6))
         0.3025
     """
-    points, reference_points, cells, batched = check_energy_inputs(
-        points, reference_points, cells, topology_name="cells", vertices_per_row=SIMPLEX_VERTICES
-    )
+    points, reference_points, cells, batched = check_energy_inputs(points, reference_points, cells, topology_name="cells", vertices_per_row=SIMPLEX_VERTICES)
     m, num_dims = cells.shape[1] - 1, points.shape[-1]
     if m != num_dims:
         raise ValueError(
@@ -99,7 +74,7 @@ def simplex_inversion_energy(
         )
     minimum_jacobian = check_real_scalar("minimum_jacobian", minimum_jacobian, points.dtype, nonnegative=True)
     check_reduction(reduction)
-    backend = select_energy_backend("simplex_inversion_energy", implementation, points, DEFAULT_IMPLEMENTATION)
+    backend = select_energy_backend("simplex_inversion_energy", implementation, points)
 
     measure, reference_measure = cell_measures(points, reference_points, cells, backend)
     # maximum (not where) keeps NaN terms NaN.

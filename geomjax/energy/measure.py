@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
 
+from .._errors import raises_documented_errors
 from .._points import remove_batch_axis
 from .._validate import check_real_scalar
 from ._simplex import (
     SIMPLEX_VERTICES,
+    Cells,
+    Energy,
+    Points,
     cell_measures,
     check_energy_inputs,
     check_reduction,
@@ -19,20 +22,11 @@ from ._simplex import (
 
 __all__ = ["simplex_measure_energy"]
 
-# Faster backend per platform, as measured by benchmarks/bench_energy.py (see the docstring).
-# GPUs are unmeasured (no GPU was available), so they keep the portable path.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp"}
 
-
+@raises_documented_errors
 def simplex_measure_energy(
-    points: Float[Array, "*batch num_points num_dims"],
-    reference_points: Float[Array, "*batch num_points num_dims"],
-    cells: Int[Array, "num_cells simplex_vertices"],
-    *,
-    target_ratio: float = 1.0,
-    reduction: str = "sum",
-    implementation: str | None = None,
-) -> Float[Array, "..."]:
+    points: Points, reference_points: Points, cells: Cells, *, target_ratio: float = 1.0, reduction: str = "sum", implementation: str | None = None
+) -> Energy:
     r"""Penalise each simplex's measure change relative to its rest measure.
 
     Each term is ``(1/2) V_0 (q - q_*)^2`` with ``q_* = target_ratio``. For full-dimensional
@@ -52,10 +46,8 @@ def simplex_measure_energy(
         reduction: ``"none"`` (``(M,)`` or ``(B, M)``), ``"sum"`` or ``"mean"`` (sum over
             ``max(count, 1)``). No cells give ``0`` for ``"sum"`` and ``"mean"``.
         implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. Warp handles
-            ``D <= 3``. ``None`` picks Warp on CPU for ``D <= 3`` when warp-lang is installed
-            (``benchmarks/bench_energy.py``: forward plus backward 5-7x faster than JAX on
-            196,608 float64 tetrahedra and two CPU cores, 2.4x on 24,576), else ``"jax"``
-            (also on GPU, not yet measured).
+            ``D <= 3``. ``None`` picks Warp on CPU for ``D <= 3`` when warp-lang is installed, else
+            ``"jax"`` (also on GPU, not yet measured); ``benchmarks/bench_energy.py`` measures it.
 
     Returns:
         Per-cell terms or a scalar according to ``reduction``, dtype of ``points``.
@@ -71,15 +63,9 @@ def simplex_measure_energy(
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
-    Differentiable in ``points`` and ``reference_points``. The JAX path supports ``jit``,
-    ``vmap`` and derivatives of any order; the Warp path supports ``jit``, ``vmap`` and
-    first-order reverse mode (hand-written adjoint).
-
-    Sharding: designs split over a mesh with ``Explicit`` axes run the Warp kernel shard by shard
-    (``jax.shard_map``), keeping the split; the JAX path is partitioned by XLA under any mesh.
-    Under ``Auto`` axes XLA gathers the Warp kernel's inputs on every device (correct, not
-    parallel). ``vmap`` over an explicitly split axis works on the JAX path only; on the Warp path
-    pass the designs as the leading axis.
+    Differentiable in ``points`` and ``reference_points`` (any order on the JAX path);
+    see the README's "Backends and transforms" for what each backend differentiates and
+    "Sharding" for designs split over devices (the Warp kernel runs shard by shard).
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -91,13 +77,11 @@ def simplex_measure_energy(
         >>> print(np.round(np.asarray(terms), 6))
         [0. 1.]
     """
-    points, reference_points, cells, batched = check_energy_inputs(
-        points, reference_points, cells, topology_name="cells", vertices_per_row=SIMPLEX_VERTICES
-    )
+    points, reference_points, cells, batched = check_energy_inputs(points, reference_points, cells, topology_name="cells", vertices_per_row=SIMPLEX_VERTICES)
     simplex_dimension("simplex_measure_energy", cells, points.shape[-1])
     target_ratio = check_real_scalar("target_ratio", target_ratio, points.dtype, positive=True)
     check_reduction(reduction)
-    backend = select_energy_backend("simplex_measure_energy", implementation, points, DEFAULT_IMPLEMENTATION)
+    backend = select_energy_backend("simplex_measure_energy", implementation, points)
 
     measure, reference_measure = cell_measures(points, reference_points, cells, backend)
     terms = jnp.abs(reference_measure) * jnp.square(measure / reference_measure - target_ratio) / 2

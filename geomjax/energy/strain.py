@@ -6,19 +6,21 @@ import math
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
 
+from .._errors import raises_documented_errors
 from .._points import remove_batch_axis
-from .._sharding import map_local_shards
 from .._validate import check_real_scalar
 from ._simplex import (
     SIMPLEX_VERTICES,
+    Cells,
+    Energy,
+    Points,
     check_energy_inputs,
     check_reduction,
     dot,
     gram_schmidt,
-    nan_terms,
     reduce_terms,
+    row_terms,
     select_energy_backend,
     simplex_dimension,
     simplex_edges,
@@ -26,21 +28,18 @@ from ._simplex import (
 
 __all__ = ["simplex_strain_energy"]
 
-# Faster backend per platform, as measured by benchmarks/bench_energy.py (see the docstring).
-# GPUs are unmeasured (no GPU was available), so they keep the portable path.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp"}
 
-
+@raises_documented_errors
 def simplex_strain_energy(
-    points: Float[Array, "*batch num_points num_dims"],
-    reference_points: Float[Array, "*batch num_points num_dims"],
-    cells: Int[Array, "num_cells simplex_vertices"],
+    points: Points,
+    reference_points: Points,
+    cells: Cells,
     *,
     lame_lambda: float = 1.0,
     shear_modulus: float = 1.0,
     reduction: str = "sum",
     implementation: str | None = None,
-) -> Float[Array, "..."]:
+) -> Energy:
     r"""Reference-integrated St. Venant-Kirchhoff energy of every simplex.
 
     For a cell with consecutive edges ``E`` (rows ``x_{k+1} - x_k`` after sorting the cell's
@@ -68,11 +67,9 @@ def simplex_strain_energy(
             integrated total over every batch item and cell) or ``"mean"`` (sum over
             ``max(count, 1)``). No cells give ``0`` for ``"sum"`` and ``"mean"``.
         implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. Warp handles
-            ``D <= 3``. ``None`` picks Warp on CPU for ``D <= 3`` when warp-lang is installed,
-            else ``"jax"`` (also on GPU, where it is not yet measured): on 196,608 float64
-            tetrahedra ``benchmarks/bench_energy.py`` measured the Warp path's forward plus
-            backward about 5x faster than JAX's on two CPU cores (3.4x on one), whose
-            vertex-gradient scatter-add dominates; on a few cells both take well under 1 ms.
+            ``D <= 3``. ``None`` picks Warp on CPU for ``D <= 3`` when warp-lang is installed, else
+            ``"jax"`` (also on GPU, not yet measured): the Warp path avoids JAX's vertex-gradient
+            scatter-add, which dominates on CPU (``benchmarks/bench_energy.py``).
 
     Returns:
         Per-cell terms or a scalar according to ``reduction``, dtype of ``points``.
@@ -90,15 +87,9 @@ def simplex_strain_energy(
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
-    Differentiable in ``points`` and ``reference_points`` (connectivity is discrete). The JAX
-    path supports ``jit``, ``vmap`` and derivatives of any order (Hessian-vector products); the
-    Warp path supports ``jit``, ``vmap`` and first-order reverse mode (hand-written adjoint).
-
-    Sharding: designs split over a mesh with ``Explicit`` axes run the Warp kernel shard by shard
-    (``jax.shard_map``), keeping the split; the JAX path is partitioned by XLA under any mesh.
-    Under ``Auto`` axes XLA gathers the Warp kernel's inputs on every device (correct, not
-    parallel). ``vmap`` over an explicitly split axis works on the JAX path only; on the Warp path
-    pass the designs as the leading axis.
+    Differentiable in ``points`` and ``reference_points`` (connectivity is discrete), to any
+    order on the JAX path (Hessian-vector products); see the README's "Backends and transforms" for what each backend differentiates and
+    "Sharding" for designs split over devices (the Warp kernel runs shard by shard).
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -111,9 +102,7 @@ def simplex_strain_energy(
         >>> print(np.round(float(energy), 6), np.round(0.5 * 1.5 * eps**2, 6))
         0.008269 0.008269
     """
-    points, reference_points, cells, batched = check_energy_inputs(
-        points, reference_points, cells, topology_name="cells", vertices_per_row=SIMPLEX_VERTICES
-    )
+    points, reference_points, cells, batched = check_energy_inputs(points, reference_points, cells, topology_name="cells", vertices_per_row=SIMPLEX_VERTICES)
     m = simplex_dimension("simplex_strain_energy", cells, points.shape[-1])
     lame_lambda = check_real_scalar("lame_lambda", lame_lambda, points.dtype)
     shear_modulus = check_real_scalar("shear_modulus", shear_modulus, points.dtype, nonnegative=True)
@@ -124,25 +113,17 @@ def simplex_strain_energy(
             f"{lame_lambda} + 2 * {shear_modulus} / {m} = {lame_lambda + 2 * shear_modulus / m}"
         )
     check_reduction(reduction)
-    backend = select_energy_backend("simplex_strain_energy", implementation, points, DEFAULT_IMPLEMENTATION)
+    backend = select_energy_backend("simplex_strain_energy", implementation, points)
 
-    num_batch, num_points, _ = points.shape
-    shape = (num_batch, cells.shape[0])
-    if num_batch * cells.shape[0] == 0:
-        terms = jnp.zeros(shape, points.dtype)
-    elif num_points == 0:
-        terms = nan_terms(shape, points.dtype)
-    elif backend == "warp":
+    def warp_terms(p, r, c):
         from warp_ffi.strain import simplex_strain_terms
 
-        terms = map_local_shards(
-            lambda p, r, c: simplex_strain_terms(p, r, c, shear_modulus=shear_modulus, bulk_term=bulk_term),
-            (points, reference_points, cells),
-            (1, 1, 0),
-            out_axes=1,
-        )
-    else:
-        terms = strain_terms(points, reference_points, cells, shear_modulus, bulk_term)
+        return simplex_strain_terms(p, r, c, shear_modulus=shear_modulus, bulk_term=bulk_term)
+
+    def jax_terms(p, r, c):
+        return strain_terms(p, r, c, shear_modulus, bulk_term)
+
+    terms = row_terms(points, reference_points, cells, backend, warp_terms, jax_terms)
     return reduce_terms(remove_batch_axis(terms, batched), reduction)
 
 

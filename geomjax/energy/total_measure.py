@@ -4,36 +4,20 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
 
+from .._errors import raises_documented_errors
 from .._points import remove_batch_axis
 from .._validate import check_real_scalar
-from ._simplex import (
-    SIMPLEX_VERTICES,
-    cell_measures,
-    check_energy_inputs,
-    check_reduction,
-    reduce_terms,
-    select_energy_backend,
-    simplex_dimension,
-)
+from . import _simplex as simplex
+from ._simplex import Cells, Energy, Points
 
 __all__ = ["total_measure_energy"]
 
-# Faster backend per platform, as measured by benchmarks/bench_energy.py (see the docstring).
-# GPUs are unmeasured (no GPU was available), so they keep the portable path.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp"}
 
-
+@raises_documented_errors
 def total_measure_energy(
-    points: Float[Array, "*batch num_points num_dims"],
-    reference_points: Float[Array, "*batch num_points num_dims"],
-    cells: Int[Array, "num_cells simplex_vertices"],
-    *,
-    target_ratio: float = 1.0,
-    reduction: str = "sum",
-    implementation: str | None = None,
-) -> Float[Array, "..."]:
+    points: Points, reference_points: Points, cells: Cells, *, target_ratio: float = 1.0, reduction: str = "sum", implementation: str | None = None
+) -> Energy:
     r"""Penalise the change of the total measure of a simplex set, one term per batch item.
 
     With the per-cell rest measures ``V_{0,i}`` and ratios ``q_i`` of
@@ -55,10 +39,8 @@ def total_measure_energy(
         reduction: ``"none"`` (a scalar for unbatched input, ``(B,)`` for batched), ``"sum"``
             or ``"mean"`` over the batch.
         implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. Warp handles
-            ``D <= 3``. ``None`` picks Warp on CPU for ``D <= 3`` when warp-lang is installed
-            (``benchmarks/bench_energy.py``: forward plus backward 5-7x faster than JAX on
-            196,608 float64 tetrahedra and two CPU cores, 2.4x on 24,576), else ``"jax"``
-            (also on GPU, not yet measured).
+            ``D <= 3``. ``None`` picks Warp on CPU for ``D <= 3`` when warp-lang is installed, else
+            ``"jax"`` (also on GPU, not yet measured), as for :func:`~geomjax.simplex_measure_energy`.
 
     Returns:
         One term per batch item or a scalar according to ``reduction``, dtype of ``points``.
@@ -76,15 +58,9 @@ def total_measure_energy(
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
-    Differentiable in ``points`` and ``reference_points``. The JAX path supports ``jit``,
-    ``vmap`` and derivatives of any order; the Warp path supports ``jit``, ``vmap`` and
-    first-order reverse mode (hand-written adjoint).
-
-    Sharding: designs split over a mesh with ``Explicit`` axes run the Warp kernel shard by shard
-    (``jax.shard_map``), keeping the split; the JAX path is partitioned by XLA under any mesh.
-    Under ``Auto`` axes XLA gathers the Warp kernel's inputs on every device (correct, not
-    parallel). ``vmap`` over an explicitly split axis works on the JAX path only; on the Warp path
-    pass the designs as the leading axis.
+    Differentiable in ``points`` and ``reference_points`` through the summed measures;
+    see the README's "Backends and transforms" for what each backend differentiates and
+    "Sharding" for designs split over devices (the Warp kernel runs shard by shard).
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -97,19 +73,19 @@ def total_measure_energy(
         >>> print(np.round(float(total_measure_energy(1.1 * rest, rest, cells, implementation="jax")), 6))
         0.02205
     """
-    points, reference_points, cells, batched = check_energy_inputs(
-        points, reference_points, cells, topology_name="cells", vertices_per_row=SIMPLEX_VERTICES
+    points, reference_points, cells, batched = simplex.check_energy_inputs(
+        points, reference_points, cells, topology_name="cells", vertices_per_row=simplex.SIMPLEX_VERTICES
     )
-    simplex_dimension("total_measure_energy", cells, points.shape[-1])
+    simplex.simplex_dimension("total_measure_energy", cells, points.shape[-1])
     if cells.shape[0] == 0:
         raise ValueError("total_measure_energy needs at least one cell, got cells of shape (0, K)")
     target_ratio = check_real_scalar("target_ratio", target_ratio, points.dtype, positive=True)
-    check_reduction(reduction)
-    backend = select_energy_backend("total_measure_energy", implementation, points, DEFAULT_IMPLEMENTATION)
+    simplex.check_reduction(reduction)
+    backend = simplex.select_energy_backend("total_measure_energy", implementation, points)
 
-    measure, reference_measure = cell_measures(points, reference_points, cells, backend)
+    measure, reference_measure = simplex.cell_measures(points, reference_points, cells, backend)
     terms = total_terms(measure, reference_measure, target_ratio)
-    return reduce_terms(remove_batch_axis(terms, batched), reduction)
+    return simplex.reduce_terms(remove_batch_axis(terms, batched), reduction)
 
 
 def total_terms(measure: jax.Array, reference_measure: jax.Array, target_ratio: float) -> jax.Array:

@@ -6,41 +6,28 @@ import functools
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
 
+from .._dispatch import Implementation
+from .._errors import raises_documented_errors
 from .._points import remove_batch_axis
 from .._sharding import map_local_shards
 from .._validate import check_real_scalar
-from ._simplex import (
-    all_finite,
-    check_energy_inputs,
-    check_reduction,
-    cross,
-    dot,
-    gather_vertices,
-    keep_or,
-    nan_terms,
-    reduce_terms,
-    require_three_dims,
-    select_energy_backend,
-)
+from . import _simplex as simplex
+from ._simplex import Energy, SurfacePoints, Triangles
 
 __all__ = ["closed_surface_volume_energy"]
 
-# Faster backend per platform, as measured by benchmarks/bench_energy.py (see the docstring).
-# GPUs are unmeasured (no GPU was available), so they keep the portable path.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp"}
 
-
+@raises_documented_errors
 def closed_surface_volume_energy(
-    points: Float[Array, "*batch num_points 3"],
-    reference_points: Float[Array, "*batch num_points 3"],
-    triangles: Int[Array, "num_triangles 3"],
+    points: SurfacePoints,
+    reference_points: SurfacePoints,
+    triangles: Triangles,
     *,
     target_ratio: float = 1.0,
     reduction: str = "sum",
     implementation: str | None = None,
-) -> Float[Array, "..."]:
+) -> Energy:
     r"""Penalise the change of the volume enclosed by a closed, consistently oriented surface.
 
     The signed volume is ``V = sum_f y_0 . (y_1 x y_2) / 6`` over faces ``(i, j, k)`` with
@@ -65,10 +52,9 @@ def closed_surface_volume_energy(
         reduction: ``"none"`` (a scalar for unbatched input, ``(B,)`` for batched), ``"sum"``
             or ``"mean"`` over the batch.
         implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. ``None`` picks
-            Warp on CPU when warp-lang is installed, else ``"jax"`` (also on GPU, where it is
-            not yet measured). The margin is small: ``benchmarks/bench_energy.py`` measured
-            forward plus backward 1.2-1.6x faster than JAX on 81,920 float64 triangles, and
-            JAX about 0.1 ms faster on 5,120 (both well under a millisecond there).
+            Warp on CPU when warp-lang is installed, else ``"jax"`` (also on GPU, where it is not yet
+            measured). The margin is small on large meshes and reversed on small ones
+            (``benchmarks/bench_energy.py``).
 
     Returns:
         One term per batch item or a scalar according to ``reduction``, dtype of ``points``.
@@ -86,15 +72,9 @@ def closed_surface_volume_energy(
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
-    Differentiable in ``points`` and ``reference_points``. The JAX path supports ``jit``,
-    ``vmap`` and derivatives of any order; the Warp path supports ``jit``, ``vmap`` and
-    first-order reverse mode (hand-written adjoint).
-
-    Sharding: designs split over a mesh with ``Explicit`` axes run the Warp kernel shard by shard
-    (``jax.shard_map``), keeping the split; the JAX path is partitioned by XLA under any mesh.
-    Under ``Auto`` axes XLA gathers the Warp kernel's inputs on every device (correct, not
-    parallel). ``vmap`` over an explicitly split axis works on the JAX path only; on the Warp path
-    pass the designs as the leading axis.
+    Differentiable in ``points`` and ``reference_points`` (the local origin is not);
+    see the README's "Backends and transforms" for what each backend differentiates and
+    "Sharding" for designs split over devices (the Warp kernel runs shard by shard).
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -105,21 +85,21 @@ def closed_surface_volume_energy(
         >>> print(np.round(float(energy), 6), np.round(0.5 / 6 * 7.0**2, 6))
         4.083333 4.083333
     """
-    points, reference_points, triangles, batched = check_energy_inputs(
+    points, reference_points, triangles, batched = simplex.check_energy_inputs(
         points, reference_points, triangles, topology_name="triangles", vertices_per_row=(3,)
     )
-    require_three_dims("closed_surface_volume_energy", points)
+    simplex.require_three_dims("closed_surface_volume_energy", points)
     if triangles.shape[0] == 0:
         raise ValueError("closed_surface_volume_energy needs at least one triangle, got triangles of shape (0, 3)")
     target_ratio = check_real_scalar("target_ratio", target_ratio, points.dtype, positive=True)
-    check_reduction(reduction)
-    backend = select_energy_backend("closed_surface_volume_energy", implementation, points, DEFAULT_IMPLEMENTATION)
+    simplex.check_reduction(reduction)
+    backend = simplex.select_energy_backend("closed_surface_volume_energy", implementation, points)
 
     num_batch, num_points, _ = points.shape
     if num_batch == 0:
         terms = jnp.zeros((0,), points.dtype)
     elif num_points == 0:
-        terms = nan_terms((num_batch,), points.dtype)
+        terms = simplex.nan_terms((num_batch,), points.dtype)
     else:
         volume, reference_volume = map_local_shards(
             functools.partial(enclosed_volumes, backend=backend), (points, reference_points, triangles), (1, 1, 0), out_axes=1
@@ -129,21 +109,26 @@ def closed_surface_volume_energy(
         reference_volume = jnp.where(valid, reference_volume, 1)
         terms = jnp.abs(reference_volume) * jnp.square(volume / reference_volume - target_ratio) / 2
         terms = jnp.where(valid, terms, jnp.nan)
-    return reduce_terms(remove_batch_axis(terms, batched), reduction)
+    return simplex.reduce_terms(remove_batch_axis(terms, batched), reduction)
 
 
-def enclosed_volumes(points: jax.Array, reference_points: jax.Array, triangles: jax.Array, backend: str) -> tuple[jax.Array, jax.Array]:
+def enclosed_volumes(points: jax.Array, reference_points: jax.Array, triangles: jax.Array, backend: Implementation) -> tuple[jax.Array, jax.Array]:
     """Signed volumes ``(B,)`` enclosed by ``(F, 3)`` faces on ``(B, N, 3)`` current and rest points
     (``N > 0``); NaN when a face is invalid."""
     first = jnp.clip(triangles[0, 0], 0, points.shape[1] - 1)
     origins = jax.lax.stop_gradient(jnp.stack([points[:, first], reference_points[:, first]], axis=1))
-    if backend == "warp":
+    if backend.is_warp:
         from warp_ffi.volume import face_volumes as warp_face_volumes
 
-        volumes = warp_face_volumes(points, reference_points, triangles, origins)
+        volumes = backend.run(warp_face_volumes, _face_volume_pair, points, reference_points, triangles, origins)
     else:
-        volumes = (face_volumes(points, triangles, origins[:, 0]), face_volumes(reference_points, triangles, origins[:, 1]))
+        volumes = _face_volume_pair(points, reference_points, triangles, origins)
     return jnp.sum(volumes[0], axis=-1), jnp.sum(volumes[1], axis=-1)
+
+
+def _face_volume_pair(points, reference_points, triangles, origins) -> tuple[jax.Array, jax.Array]:
+    """Current and rest face volumes about ``origins`` ``(B, 2, 3)``: what the Warp kernel returns."""
+    return face_volumes(points, triangles, origins[:, 0]), face_volumes(reference_points, triangles, origins[:, 1])
 
 
 @jax.jit
@@ -152,9 +137,9 @@ def face_volumes(points: jax.Array, triangles: jax.Array, origin: jax.Array) -> 
 
     NaN, with no gradient, for faces with an out-of-range index or non-finite coordinates.
     """
-    corners, in_range = gather_vertices(points, [triangles[:, k] for k in range(3)])
+    corners, in_range = simplex.gather_vertices(points, [triangles[:, k] for k in range(3)])
     corners = [c - origin[:, None, :] for c in corners]
-    valid = in_range & all_finite(corners)
+    valid = in_range & simplex.all_finite(corners)
     zero = jnp.zeros(3, points.dtype)
-    y0, y1, y2 = keep_or(valid, corners, [zero, zero, zero])
-    return jnp.where(valid, dot(y0, cross(y1, y2)) / 6, jnp.nan)
+    y0, y1, y2 = simplex.keep_or(valid, corners, [zero, zero, zero])
+    return jnp.where(valid, simplex.dot(y0, simplex.cross(y1, y2)) / 6, jnp.nan)

@@ -32,6 +32,8 @@ import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Float
 
+from .._errors import runtime_branched_check
+
 __all__ = ["PCGResult", "jacobi_pcg", "solution_or_error", "JacobiPCG"]
 
 
@@ -49,8 +51,8 @@ def _column_dot(a: Array, b: Array) -> Array:
 
     Written on transposed operands: XLA's CPU reduction of an ``(N, D)`` product over its major
     axis is several times slower than over the minor axis of ``(D, N)`` operands, and these
-    reductions dominate a CG iteration after the operator product (measured: a whole solve of
-    the 40,962-vertex benchmark 1.3-1.8x faster).
+    reductions dominate a CG iteration after the operator product (``benchmarks/bench_sobolev.py``
+    measures the whole solve).
     """
     return jnp.sum(a.T * b.T, axis=1)
 
@@ -58,7 +60,7 @@ def _column_dot(a: Array, b: Array) -> Array:
 def jacobi_pcg(
     matvec: Callable[[Array], Array],
     rhs: Float[Array, "num_rows num_columns"],
-    inverse_diagonal: Float[Array, "num_rows"],
+    inverse_diagonal: Float[Array, " num_rows"],
     initial_guess: Float[Array, "num_rows num_columns"],
     *,
     rtol: float | Array,
@@ -152,20 +154,21 @@ def jacobi_pcg(
 
 
 def solution_or_error(result: PCGResult, *, max_steps: int, context: str) -> Array:
-    """``result.solution``, guarded by a runtime error if the solve failed (see :class:`JacobiPCG`)."""
+    """``result.solution``, guarded by a runtime check (``RuntimeError``) if the solve failed
+    (see :class:`JacobiPCG`)."""
     failure = jnp.where(result.breakdown, 2, jnp.where(result.converged, 0, 1))
-    return eqx.branched_error_if(
+    return runtime_branched_check(
         result.solution,
         failure > 0,
         failure,
         (
             "",
-            f"{context}: the Jacobi-PCG solve did not converge within {max_steps} iterations. "
-            "Increase max_iterations or relax tolerance",
+            f"{context}: the Jacobi-PCG solve did not converge within {max_steps} iterations. Increase max_iterations or relax tolerance",
             f"{context}: the Jacobi-PCG solve did not converge (breakdown: non-finite values or a "
             "non-positive curvature p^T A p). Check that the inputs are finite; increase "
             "max_iterations or relax tolerance",
         ),
+        RuntimeError,
     )
 
 
@@ -184,8 +187,9 @@ class JacobiPCG(lx.AbstractLinearSolver):
     * ``"y0"``: initial guess, ``(N, D)``; dropped for the transposed (adjoint) solve.
 
     Failure (non-convergence within ``max_steps`` or breakdown) raises a ``RuntimeError``
-    through ``equinox.error_if`` in every solve, primal, tangent and adjoint alike: eagerly an
-    ``EquinoxRuntimeError``, under ``jit`` a ``JaxRuntimeError`` carrying the same message.
+    through ``equinox.error_if`` in every solve, primal, tangent and adjoint alike (see
+    ``geomjax._errors``): public ops raise it as a plain ``RuntimeError`` with the message;
+    under a user's ``jit`` it is JAX's runtime error carrying the same message.
 
     Attributes:
         rtol: relative 2-norm residual tolerance (a Python float or a scalar array).
@@ -210,9 +214,7 @@ class JacobiPCG(lx.AbstractLinearSolver):
         guess = options.get("y0")
         if guess is None:
             guess = jnp.zeros_like(vector)
-        result = jacobi_pcg(
-            operator.mv, vector, options["inverse_diagonal"], guess, rtol=self.rtol, max_steps=self.max_steps
-        )
+        result = jacobi_pcg(operator.mv, vector, options["inverse_diagonal"], guess, rtol=self.rtol, max_steps=self.max_steps)
         solution = solution_or_error(result, max_steps=self.max_steps, context=self.context)
         return solution, lx.RESULTS.successful, {"num_steps": result.num_steps}
 

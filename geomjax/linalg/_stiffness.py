@@ -78,9 +78,7 @@ def _determinant_and_adjugate(gram: jax.Array) -> tuple[jax.Array, jax.Array]:
         c12 = g[..., 0, 2] * g[..., 1, 0] - g[..., 0, 0] * g[..., 1, 2]
         c22 = g[..., 0, 0] * g[..., 1, 1] - g[..., 0, 1] * g[..., 1, 0]
         det = g[..., 0, 0] * c00 + g[..., 0, 1] * c01 + g[..., 0, 2] * c02
-        adjugate = jnp.stack(
-            [jnp.stack([c00, c01, c02], -1), jnp.stack([c01, c11, c12], -1), jnp.stack([c02, c12, c22], -1)], -2
-        )
+        adjugate = jnp.stack([jnp.stack([c00, c01, c02], -1), jnp.stack([c01, c11, c12], -1), jnp.stack([c02, c12, c22], -1)], -2)
         return det, adjugate
     det = jnp.linalg.det(gram)
     return det, jnp.linalg.inv(gram) * det[..., None, None]
@@ -90,9 +88,7 @@ def _gram(edges: jax.Array) -> jax.Array:
     return jnp.einsum("cid,cjd->cij", edges, edges)
 
 
-def simplex_stiffness(
-    points: Float[Array, "N D"], cells: Int[Array, "C V"]
-) -> tuple[Float[Array, "C V V"], Float[Array, " C"], Float[Array, " C"]]:
+def simplex_stiffness(points: Float[Array, "N D"], cells: Int[Array, "C V"]) -> tuple[Float[Array, "C V V"], Float[Array, " C"], Float[Array, " C"]]:
     """Local P1 stiffness matrices, measures and Gram determinants of every cell.
 
     Returns ``(local_stiffness, measures, gram_determinants)``. A cell is valid when its Gram
@@ -197,11 +193,7 @@ def _build_row_pattern(cells: np.ndarray, num_points: int) -> RowPattern | None:
     neighbours = np.repeat(np.arange(num_points, dtype=np.int32), width)
     neighbours[unique_slots] = (unique_keys % num_points).astype(np.int32)
     referenced = np.bincount(cells.reshape(-1), minlength=num_points) > 0
-    return RowPattern(
-        neighbours.reshape(num_points, width),
-        unique_slots[entry_to_unique.reshape(-1)].astype(np.int32),
-        referenced,
-    )
+    return RowPattern(neighbours.reshape(num_points, width), unique_slots[entry_to_unique.reshape(-1)].astype(np.int32), referenced)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -25,8 +25,9 @@ import numpy as np
 from jaxtyping import Array, Float, Int, UInt32
 
 from .._blocking import map_query_blocks, query_block_size
-from .._validate import as_float_array, as_index_array, check_bool, check_real_scalar, check_same_device, check_same_dtype
-from ._triangle import closest_point_on_triangle
+from .._errors import checked_pure_callback, raises_documented_errors
+from .._geometry import closest_point_on_triangle
+from .._validate import as_float_array, as_index_array, check_bool, check_index_range, check_real_scalar, check_same_device, check_same_dtype
 
 __all__ = [
     "MeshBVH",
@@ -34,6 +35,7 @@ __all__ = [
     "closest_faces",
     "closest_faces_brute_force",
     "checked_mesh",
+    "checked_query_points",
     "consistently_oriented_faces",
     "replayed",
     "sliver_faces",
@@ -109,6 +111,7 @@ class MeshBVH(eqx.Module):
         """The underlying ``wp.Mesh`` (float32 points, faces oriented as described in build_bvh)."""
         return self._mesh()
 
+    @raises_documented_errors
     def refit(self, vertices: Float[Array, "num_vertices 3"]) -> MeshBVH:
         """A MeshBVH for moved ``vertices`` (same topology), refitting the Warp BVH in place.
 
@@ -136,12 +139,8 @@ class MeshBVH(eqx.Module):
         return MeshBVH(vertices, self.faces, self.mesh_words, self.winding_number, self._mesh, tree)
 
 
-def build_bvh(
-    vertices: Float[Array, "num_vertices 3"],
-    faces: Int[Array, "num_faces 3"],
-    *,
-    winding_number: bool = False,
-) -> MeshBVH:
+@raises_documented_errors
+def build_bvh(vertices: Float[Array, "num_vertices 3"], faces: Int[Array, "num_faces 3"], *, winding_number: bool = False) -> MeshBVH:
     """Build a Warp BVH (``wp.Mesh``) over a triangle mesh, once, eagerly.
 
     The BVH lives on the device of ``vertices`` (CPU or CUDA) and is float32 (Warp's meshes are):
@@ -202,11 +201,7 @@ def _warp_device(array: jax.Array):
     return warp.device_from_jax(next(iter(array.devices())))
 
 
-def closest_faces(
-    bvh: MeshBVH,
-    points: Float[Array, "*batch 3"],
-    max_distance: float | None = None,
-) -> Int[Array, "*batch"]:
+def closest_faces(bvh: MeshBVH, points: Float[Array, "*batch 3"], max_distance: float | None = None) -> Int[Array, "*batch"]:
     """Nearest face of each point by BVH search (no gradient): int32 ids, ``-1`` = none in range.
 
     The answer is the face at minimum distance among all faces (degenerate ones included),
@@ -247,7 +242,7 @@ def closest_faces(
     """
     if not isinstance(bvh, MeshBVH):
         raise TypeError(f"bvh must be a MeshBVH (see build_bvh), got {type(bvh).__name__}")
-    points = _checked_queries("points", points, bvh.vertices)
+    points = checked_query_points("points", points, bvh.vertices, vertices_name="mesh vertices")
     limit = _max_distance(max_distance, points.dtype)
     shape = points.shape[:-1]
     flat = jax.lax.stop_gradient(points.reshape(-1, 3))
@@ -286,7 +281,7 @@ def closest_faces_brute_force(
     max_distance: float | None = None,
     *,
     skip_slivers: bool = False,
-) -> tuple[Int[Array, "num_points"], Float[Array, "num_points"]]:
+) -> tuple[Int[Array, " num_points"], Float[Array, " num_points"]]:
     """Nearest face of each point over all faces, in pure JAX: ``(face ids, squared distances)``.
 
     Ties go to the lowest face index; a face farther than ``max_distance`` counts as absent
@@ -334,7 +329,9 @@ def replayed(replay, differentiable, auxiliary, values):
 def _replayed_jvp(replay, primals, tangents):
     differentiable, auxiliary, values = primals
     _, out_tangents = jax.jvp(lambda *x: replay(*x, *auxiliary), differentiable, tangents[0])
-    return values, out_tangents
+    # The primal goes through replayed again, so a derivative of this derivative (a Hessian)
+    # differentiates the replay too; returning ``values`` would make it a constant there.
+    return replayed(replay, differentiable, auxiliary, values), out_tangents
 
 
 # ---------------------------------------------------------------------------------------------
@@ -354,9 +351,7 @@ def consistently_oriented_faces(faces: Int[Array, "num_faces 3"]) -> Int[Array, 
     faces = jnp.asarray(faces, jnp.int32)
     if not isinstance(faces, jax.core.Tracer):
         return jnp.asarray(_oriented_faces_numpy(np.asarray(faces)))
-    return jax.pure_callback(
-        lambda f: _oriented_faces_numpy(np.asarray(f)), jax.ShapeDtypeStruct(faces.shape, jnp.int32), faces
-    )
+    return checked_pure_callback(lambda f: _oriented_faces_numpy(np.asarray(f)), jax.ShapeDtypeStruct(faces.shape, jnp.int32), faces)
 
 
 def _oriented_faces_numpy(faces: np.ndarray) -> np.ndarray:
@@ -430,6 +425,17 @@ def _relative_flips(faces: np.ndarray) -> np.ndarray | None:
 # Input checks shared by the mesh queries.
 
 
+def checked_query_points(name: str, points, vertices: jax.Array, *, op_name: str | None = None, vertices_name: str = "mesh_vertices") -> jax.Array:
+    """Query points ``(..., 3)`` of a mesh query, with the dtype and device of the mesh ``vertices``."""
+    points = as_float_array(name, points)
+    check_same_dtype(vertices_name, vertices, name, points)
+    check_same_device(vertices_name, vertices, name, points)
+    if points.ndim < 1 or points.shape[-1] != 3:
+        prefix = f"{op_name}: " if op_name else ""
+        raise ValueError(f"{prefix}{name} must have shape (..., 3), got {tuple(points.shape)}")
+    return points
+
+
 def checked_mesh(op_name: str, mesh_vertices, mesh_indices, *, concrete: bool = False) -> tuple[jax.Array, jax.Array]:
     """Validate a triangle mesh; return vertices ``(V, 3)`` and int32 faces ``(F, 3)``.
 
@@ -447,20 +453,10 @@ def checked_mesh(op_name: str, mesh_vertices, mesh_indices, *, concrete: bool = 
     if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] == 0:
         raise ValueError(f"{op_name}: mesh_vertices must have shape (V, 3) with V >= 1, got {tuple(vertices.shape)}")
     if not ((indices.ndim == 2 and indices.shape[1] == 3) or indices.ndim == 1) or indices.size == 0 or indices.size % 3:
-        raise ValueError(
-            f"{op_name}: mesh_indices must have shape (F, 3) or (3 F,) with F >= 1, got {tuple(indices.shape)}"
-        )
+        raise ValueError(f"{op_name}: mesh_indices must have shape (F, 3) or (3 F,) with F >= 1, got {tuple(indices.shape)}")
     faces = indices.reshape(-1, 3)
     num_vertices = vertices.shape[0]
-    message = f"{op_name}: mesh_indices must lie in [0, {num_vertices})"
-    if not isinstance(faces, jax.core.Tracer):
-        host = np.asarray(faces)
-        if host.min() < 0 or host.max() >= num_vertices:
-            raise ValueError(f"{message}, got values in [{host.min()}, {host.max()}]")
-        return vertices, jnp.asarray(host.astype(np.int32))
-    in_range = (faces >= 0) & (faces < num_vertices)
-    faces = eqx.error_if(faces, ~jnp.all(in_range), message)
-    return vertices, jnp.where(in_range, faces, 0).astype(jnp.int32)
+    return vertices, check_index_range(faces, num_vertices, f"{op_name}: mesh_indices must lie in [0, {num_vertices})")
 
 
 def bvh_vertices32(vertices: jax.Array) -> jax.Array:
@@ -480,15 +476,6 @@ def _concrete_vertices(op_name: str, vertices: jax.Array) -> np.ndarray:
     if not np.all(np.isfinite(host)) or np.max(np.abs(host), initial=0.0) > FLOAT32_MAX:
         raise ValueError(f"{op_name}: vertices must be finite and within the float32 range (the Warp BVH is float32)")
     return host.astype(np.float32)
-
-
-def _checked_queries(name: str, x, vertices: jax.Array) -> jax.Array:
-    x = as_float_array(name, x)
-    check_same_dtype("mesh vertices", vertices, name, x)
-    check_same_device("mesh vertices", vertices, name, x)
-    if x.ndim < 1 or x.shape[-1] != 3:
-        raise ValueError(f"{name} must have shape (..., 3), got {tuple(x.shape)}")
-    return x
 
 
 def _max_distance(value, dtype) -> float:

@@ -10,19 +10,18 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
-from .._validate import as_float_array, check_bool, check_real_scalar, check_same_device, check_same_dtype, check_same_shape
-from ._triangle import ray_plane_intersection, ray_triangle_intersection, triangle_normal
-from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_mesh, replayed
+from .._errors import raises_documented_errors
+from .._geometry import ray_plane_intersection, ray_triangle_intersection, triangle_normal
+from .._validate import check_bool, check_real_scalar, check_same_shape
+from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_mesh, checked_query_points, replayed
 
 __all__ = ["ray_mesh_intersect"]
 
-# Faster backend per platform, as measured by benchmarks/bench_ray_sdf.py: the BVH search beats
-# the brute-force JAX path by orders of magnitude beyond toy meshes, so Warp is the default.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp", "gpu": "warp"}
 
 _NAME = "ray_mesh_intersect"
 
 
+@raises_documented_errors
 def ray_mesh_intersect(
     mesh_vertices: Float[Array, "num_vertices 3"],
     mesh_indices: Int[Array, "num_faces 3"] | Int[Array, " num_indices"],
@@ -100,11 +99,7 @@ def ray_mesh_intersect(
         [ 0.986 -0.986]
     """
     vertices, faces = checked_mesh(_NAME, mesh_vertices, mesh_indices)
-    origins = as_float_array("ray_origins", ray_origins)
-    check_same_dtype("mesh_vertices", vertices, "ray_origins", origins)
-    check_same_device("mesh_vertices", vertices, "ray_origins", origins)
-    if origins.ndim < 1 or origins.shape[-1] != 3:
-        raise ValueError(f"{_NAME}: ray_origins must have shape (..., 3), got {tuple(origins.shape)}")
+    origins = checked_query_points("ray_origins", ray_origins, vertices, op_name=_NAME)
     directions = check_same_shape("ray_origins", origins, "ray_directions", ray_directions)
     dtype = origins.dtype
     max_distance = check_real_scalar("max_distance", max_distance, dtype, positive=True)
@@ -117,7 +112,7 @@ def ray_mesh_intersect(
                 f"{_NAME}: warp_mesh was built for {warp_mesh.vertices.shape[0]} vertices and {warp_mesh.faces.shape[0]} faces, "
                 f"got a mesh with {vertices.shape[0]} and {faces.shape[0]}"
             )
-    backend = select_implementation(_NAME, implementation, backends=("jax", "warp"), default=DEFAULT_IMPLEMENTATION, platform=platform_of(vertices))
+    backend = select_implementation(_NAME, implementation, platform=platform_of(vertices))
     if return_warp_mesh and warp_mesh is None:
         warp_mesh = build_bvh(mesh_vertices, mesh_indices)
     index_dtype = jnp.int64 if jnp.dtype(mesh_indices.dtype) == jnp.int64 else jnp.int32
@@ -140,14 +135,16 @@ def ray_mesh_intersect(
 @functools.partial(jax.jit, static_argnames=("max_distance", "backend"))
 def _intersect(vertices, faces, o, d, handle, *, max_distance, backend):
     """Normalised inputs (``(V, 3)``, int32 ``(F, 3)``, ``(N, 3)`` rays, optional mesh words)."""
-    if o.shape[0] == 0 or backend == "jax":
+    if o.shape[0] == 0 or not backend.is_warp:
         hit_faces = _first_hits_brute_force(o, d, vertices, faces, max_distance) if o.shape[0] else jnp.zeros((0,), jnp.int32)
         return _replay(o, d, vertices, faces, hit_faces, max_distance)
     from warp_ffi.bvh import ray_hits
 
-    search = handle if handle is not None else (bvh_vertices32(vertices), faces.reshape(-1))
+    # The kernel sees no tracer of a derivative (an FFI call has no JVP rule): gradients come
+    # from the replay below.
     stopped = [jax.lax.stop_gradient(x) for x in (o, d, vertices)]
-    hit_faces, t, points, normals = ray_hits(search, *stopped, faces, jnp.asarray(max_distance, o.dtype), _extent(vertices))
+    search = handle if handle is not None else (bvh_vertices32(stopped[2]), faces.reshape(-1))
+    hit_faces, t, points, normals = ray_hits(search, *stopped, faces, jnp.asarray(max_distance, o.dtype), _extent(stopped[2]))
     hit = hit_faces >= 0
     values = (jnp.where(hit, t, jnp.inf), points, normals)
 

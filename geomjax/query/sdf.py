@@ -11,21 +11,20 @@ from jaxtyping import Array, Float, Int
 
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
+from .._errors import raises_documented_errors
+from .._geometry import closest_point_on_triangle, overflow_safe_norm, winding_numbers
 from .._sharding import map_local_shards
-from .._validate import as_float_array, check_bool, check_real_scalar, check_same_device, check_same_dtype
-from ._triangle import closest_point_on_triangle
-from .bvh import _extent, bvh_vertices32, checked_mesh, closest_faces_brute_force, consistently_oriented_faces, replayed, sliver_faces
+from .._validate import check_bool, check_real_scalar
+from .bvh import _extent, bvh_vertices32, checked_mesh, checked_query_points, closest_faces_brute_force, consistently_oriented_faces, replayed, sliver_faces
 
 __all__ = ["signed_distance_field"]
 
-# Faster backend per platform, as measured by benchmarks/bench_ray_sdf.py: the BVH search beats
-# the brute-force JAX path by orders of magnitude beyond toy meshes, so Warp is the default.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp", "gpu": "warp"}
 
 _NAME = "signed_distance_field"
 NORMAL_SIGN_EPSILON = 1e-3  # Warp's: faces within 1e-3 average edge lengths of the nearest share its sign
 
 
+@raises_documented_errors
 def signed_distance_field(
     mesh_vertices: Float[Array, "num_vertices 3"],
     mesh_indices: Int[Array, "num_faces 3"] | Int[Array, " num_indices"],
@@ -86,12 +85,9 @@ def signed_distance_field(
     face within the float32 answer's distance is measured again in float64), while the sign of
     points within float32 rounding of the surface (where the distance is ~0) comes from float32.
 
-    Sharding: with ``input_points`` split over a mesh with ``Explicit`` axes (``jax.make_mesh``'s
-    default), each device measures its own points against the whole (replicated) mesh inside
-    ``jax.shard_map``, on both backends, and the outputs keep the points' split; with winding
-    signs every device repairs the face orientations itself (host callback). Under ``Auto`` axes
-    XLA partitions the JAX path, and gathers the Warp path's points on every device (correct,
-    not parallel; the outputs come back replicated).
+    Sharding: see the README's "Sharding"; each device measures its own ``input_points``
+    against the whole (replicated) mesh; with winding signs every device repairs the face
+    orientations itself (host callback).
 
     Raises:
         TypeError: non-float or non-integer arrays, mismatched dtypes, a non-real or ``bool``
@@ -114,15 +110,11 @@ def signed_distance_field(
         [1. 0. 0.]
     """
     vertices, faces = checked_mesh(_NAME, mesh_vertices, mesh_indices)
-    points = as_float_array("input_points", input_points)
-    check_same_dtype("mesh_vertices", vertices, "input_points", points)
-    check_same_device("mesh_vertices", vertices, "input_points", points)
-    if points.ndim < 1 or points.shape[-1] != 3:
-        raise ValueError(f"{_NAME}: input_points must have shape (..., 3), got {tuple(points.shape)}")
+    points = checked_query_points("input_points", input_points, vertices, op_name=_NAME)
     dtype = points.dtype
     max_dist = check_real_scalar("max_dist", max_dist, dtype, positive=True)
     winding = check_bool("use_sign_winding_number", use_sign_winding_number)
-    backend = select_implementation(_NAME, implementation, backends=("jax", "warp"), default=DEFAULT_IMPLEMENTATION, platform=platform_of(vertices))
+    backend = select_implementation(_NAME, implementation, platform=platform_of(vertices))
     index_dtype = jnp.int64 if jnp.dtype(mesh_indices.dtype) == jnp.int64 else jnp.int32
 
     def local(vertices, faces, points):
@@ -141,7 +133,7 @@ def _signed_distance(vertices, faces, points, *, max_dist, winding, backend):
     if points.shape[0] == 0:
         return _replay(points, vertices, faces, jnp.zeros((0,), jnp.int32), jnp.zeros((0,), dtype), max_dist)
     sign_faces = consistently_oriented_faces(faces) if winding else faces
-    if backend == "jax":
+    if not backend.is_warp:
         face_ids, _ = closest_faces_brute_force(points, vertices, faces, skip_slivers=True)
         if winding:
             sign = _winding_sign_brute_force(points, vertices, sign_faces)
@@ -151,11 +143,14 @@ def _signed_distance(vertices, faces, points, *, max_dist, winding, backend):
 
     from warp_ffi.bvh import point_faces
 
-    stopped = [jax.lax.stop_gradient(x) for x in (points, vertices)]
+    # The kernel sees no tracer of a derivative (an FFI call has no JVP rule): gradients come
+    # from the replay below.
+    stopped_points, stopped_vertices = (jax.lax.stop_gradient(x) for x in (points, vertices))
     face_ids, sign, distance, closest = point_faces(
-        (bvh_vertices32(vertices), sign_faces.reshape(-1)), *stopped, faces, jnp.asarray(max_dist, dtype), _extent(vertices),
+        (bvh_vertices32(stopped_vertices), sign_faces.reshape(-1)), stopped_points, stopped_vertices, faces,
+        jnp.asarray(max_dist, dtype), _extent(stopped_vertices),
         sign_mode="winding" if winding else "normal", exact=dtype == jnp.float64,
-        sign_epsilon=_sign_epsilon(vertices, faces), measure=True,
+        sign_epsilon=_sign_epsilon(stopped_vertices, faces), measure=True,
     )  # fmt: skip
     sign = sign.astype(dtype)
     hit = (face_ids >= 0) & (distance < max_dist)
@@ -174,24 +169,10 @@ def _replay(points, vertices, faces, face_ids, sign, max_dist):
     """Signed distance and closest point on each chosen face (differentiable), gated by ``max_dist``."""
     tri = vertices[faces[jnp.maximum(face_ids, 0)]]
     closest, _ = closest_point_on_triangle(points, tri[:, 0], tri[:, 1], tri[:, 2])
-    distance = _norm(points - closest)
+    distance = overflow_safe_norm(points - closest)
     hit = (face_ids >= 0) & (distance < max_dist)
     nan = jnp.asarray(jnp.nan, points.dtype)
-    return (
-        jnp.where(hit, sign * distance, nan),
-        jnp.where(hit[:, None], closest, nan),
-        jnp.where(hit, face_ids, -1),
-    )
-
-
-def _norm(x):
-    """``|x|`` over the last axis without overflow or underflow; zero gradient at ``x = 0``."""
-    largest = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=-1))
-    usable = (largest > 0) & jnp.isfinite(largest)
-    one = jnp.ones((), x.dtype)
-    scale = jnp.where(usable, largest, one)
-    sumsq = jnp.sum(jnp.square(x / scale[..., None]), axis=-1)
-    return jnp.where(usable, scale * jnp.sqrt(jnp.where(usable, sumsq, one)), jnp.where(largest > 0, largest, 0))
+    return (jnp.where(hit, sign * distance, nan), jnp.where(hit[:, None], closest, nan), jnp.where(hit, face_ids, -1))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -278,13 +259,3 @@ def _winding_sign_brute_force(points, vertices, faces):
 
     block = _block_size(points.shape[0], faces.shape[0], points.dtype)
     return map_query_blocks(block_sign, (points,), block_size=block)
-
-
-def winding_numbers(points: Float[Array, "num_points 3"], triangles: Float[Array, "num_faces 3 3"]) -> Float[Array, " num_points"]:
-    """Exact generalized winding numbers ``sum_f omega_f / (4 pi)`` of points w.r.t. triangles."""
-    rel = triangles[None] - points[:, None, None, :]
-    a, b, c = rel[:, :, 0], rel[:, :, 1], rel[:, :, 2]
-    la, lb, lc = (jnp.linalg.norm(x, axis=-1) for x in (a, b, c))
-    det = jnp.sum(a * jnp.cross(b, c), -1)
-    denominator = la * lb * lc + jnp.sum(a * b, -1) * lc + jnp.sum(b * c, -1) * la + jnp.sum(c * a, -1) * lb
-    return jnp.sum(2 * jnp.arctan2(det, denominator), axis=1) / (4 * math.pi)

@@ -12,27 +12,18 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .. import _geometry
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
+from .._errors import raises_documented_errors, runtime_check
 from .._hashing import lowbias32
-from .._validate import (
-    as_float_array,
-    check_bool,
-    check_integer,
-    check_real_scalar,
-    check_real_sequence,
-    check_same_device,
-    is_array,
-)
+from .._validate import as_float_array, check_bool, check_integer, check_real_scalar, check_real_sequence, check_same_device, is_array
 from .bvh import checked_mesh, consistently_oriented_faces
 
 __all__ = ["mesh_to_voxel_fraction"]
 
 _NAME = "mesh_to_voxel_fraction"
 
-# Faster backend per platform, as measured by benchmarks/bench_shrinkwrap_voxel.py (see the
-# docstring). GPUs are unmeasured here; Warp is the reference's (only) backend there.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp", "gpu": "warp"}
 
 # The overlap test is widened by this many voxel sizes against rounding (as in warp_ffi.voxel).
 MARK_SLACK = 2.0**-16
@@ -40,9 +31,10 @@ _MAX_VOXELS = 2**31 - 1
 _FLOAT32_SAFE = 1e30
 
 
+@raises_documented_errors
 def mesh_to_voxel_fraction(
     mesh_vertices: Float[Array, "num_vertices 3"],
-    mesh_indices: Int[Array, "num_faces 3"] | Int[Array, "num_indices"],
+    mesh_indices: Int[Array, "num_faces 3"] | Int[Array, " num_indices"],
     origin: Float[Array, "3"] | Sequence[float],
     voxel_size: float,
     grid_dims: Sequence[int] | Int[Array, "3"],
@@ -100,11 +92,9 @@ def mesh_to_voxel_fraction(
             one winding-number query per sample, plus a host-side orientation pass. The JAX
             backend is a brute-force reference for small problems: it evaluates every centre and
             sample against every triangle (O(grid x samples x F)), in the vertices' dtype.
-            ``None`` picks Warp on every platform when warp-lang is installed, JAX otherwise:
-            ``benchmarks/bench_shrinkwrap_voxel.py`` (CPU, 64^3 grid, 81,920 triangles) measures
-            Warp with 64 samples 2x faster than Open3D's 2x2x2-supersampled occupancy with a
-            2.6x smaller per-voxel error; the JAX backend would pair 17 million points with
-            every triangle.
+            ``None`` picks Warp on every platform when warp-lang is installed, JAX otherwise
+            (``benchmarks/bench_shrinkwrap_voxel.py`` compares it with Open3D's supersampled
+            occupancy, in time and per-voxel error).
 
     Returns:
         ``(nz, ny, nx)`` float32 fractions in ``[0, 1]``.
@@ -145,9 +135,8 @@ def mesh_to_voxel_fraction(
     open_mesh = check_bool("open_mesh", open_mesh)
     threshold = check_real_scalar("winding_number_threshold", winding_number_threshold, jnp.float32)
     check_real_scalar("winding_number_accuracy", winding_number_accuracy, jnp.float32, positive=True)
-    backend = select_implementation(
-        _NAME, implementation, backends=("jax", "warp"), default=DEFAULT_IMPLEMENTATION, platform=platform_of(vertices)
-    )
+    # Not differentiated: only the backend's name matters here.
+    backend = select_implementation(_NAME, implementation, platform=platform_of(vertices)).name
     vertices = _checked_finite(jax.lax.stop_gradient(vertices))
     if open_mesh:
         # A few flipped faces would corrupt the winding number near them.
@@ -155,9 +144,7 @@ def mesh_to_voxel_fraction(
     origin = jax.lax.stop_gradient(origin)
     options = dict(voxel_size=voxel_size, grid=grid, n_samples=n_samples, strata=_strata(n_samples), seed=seed)
     if backend == "warp":
-        return _voxel_fractions_warp(
-            vertices, faces, origin, **options, open_mesh=open_mesh, threshold=threshold, accuracy=float(winding_number_accuracy)
-        )
+        return _voxel_fractions_warp(vertices, faces, origin, **options, open_mesh=open_mesh, threshold=threshold, accuracy=float(winding_number_accuracy))
     return voxel_fractions_jax(vertices, faces, origin, **options, threshold=threshold if open_mesh else 0.5)
 
 
@@ -218,9 +205,7 @@ def _checked_finite(vertices: jax.Array) -> jax.Array:
     finite = jnp.all(jnp.isfinite(vertices))
     message = f"{_NAME}: mesh_vertices must be finite"
     if isinstance(vertices, jax.core.Tracer):
-        import equinox as eqx
-
-        return eqx.error_if(vertices, jnp.logical_not(finite), message)
+        return runtime_check(vertices, jnp.logical_not(finite), message, ValueError)
     if not bool(finite):
         raise ValueError(message)
     return vertices
@@ -271,15 +256,7 @@ def winding_numbers(points: jax.Array, triangles: jax.Array) -> jax.Array:
     itemsize = jnp.dtype(triangles.dtype).itemsize
     block = query_block_size(points.shape[0], num_faces * itemsize * 40)
 
-    def block_winding(p):
-        r = triangles[None, :, :, :] - p[:, None, None, :]
-        a, b, c = r[..., 0, :], r[..., 1, :], r[..., 2, :]
-        la, lb, lc = (jnp.linalg.norm(v, axis=-1) for v in (a, b, c))
-        det = jnp.sum(a * jnp.cross(b, c), axis=-1)
-        den = la * lb * lc + jnp.sum(a * b, axis=-1) * lc + jnp.sum(b * c, axis=-1) * la + jnp.sum(c * a, axis=-1) * lb
-        return jnp.sum(2 * jnp.arctan2(det, den), axis=-1) / (4 * jnp.pi)
-
-    return map_query_blocks(block_winding, (points,), block_size=block)
+    return map_query_blocks(lambda p: _geometry.winding_numbers(p, triangles), (points,), block_size=block)
 
 
 def marked_voxels(lower: jax.Array, voxel_size: float, triangles: jax.Array) -> jax.Array:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import inspect
 import math
 from typing import NamedTuple
 
@@ -13,18 +14,16 @@ from jaxtyping import Array, Float, Int
 
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
+from .._errors import raises_documented_errors
+from .._hash_grid import table_dims
+from .._projection import SurfaceProjector
 from .._validate import check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
-from ..query._triangle import closest_point_on_triangle
-from ..sample._hash_grid import table_dims
 from ..sample.farthest import farthest_point_sampling
 
 __all__ = ["remeshing", "remesh_with_sources", "RemeshResult", "SurfaceProjector"]
 
 _NAME = "remeshing"
 
-# Faster backend per platform, as measured by benchmarks/bench_sampling_remesh.py on CPU (see the
-# docstring). GPUs are unmeasured; Warp is the reference's (only) backend there.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp", "gpu": "warp"}
 
 MAX_HASH_GRID_RESOLUTION = 256
 RADIUS_SCALE_CAP = 12.0  # the search radius never exceeds max(s, 12) cluster spacings
@@ -54,13 +53,14 @@ class RemeshResult(NamedTuple):
     barycentric: jax.Array
 
 
+@raises_documented_errors
 def remeshing(
     mesh_vertices: Float[Array, "num_vertices 3"],
     mesh_indices: Int[Array, "num_faces 3"],
     n_clusters: int,
     *,
     max_iterations: int = 4,
-    vertex_density: Float[Array, "num_vertices"] | None = None,
+    vertex_density: Float[Array, " num_vertices"] | None = None,
     search_radius_scale: float = 1.6,
     voxel_width_scale: float = 1.15,
     hash_grid_resolution: int = 128,
@@ -87,7 +87,7 @@ def remeshing(
        vertices (an empty cluster keeps its position); a final assignment gives the labels.
     4. Each centroid is projected onto the closest point of the source surface (a Warp BVH
        search, or brute force on the JAX path, then
-       :func:`geomjax.query._triangle.closest_point_on_triangle`).
+       :func:`geomjax._geometry.closest_point_on_triangle`).
     5. Topology: every input triangle is relabelled by its vertices' clusters; triangles with a
        repeated label are dropped, duplicates (in any orientation) keep their first occurrence,
        triangles of zero area after projection are dropped, and while an edge has more than two
@@ -100,11 +100,9 @@ def remeshing(
        vertex moves to the mass-weighted mean of the circumcentres of its triangles (the
        midpoint of the longest edge for an obtuse one) and is projected onto the source surface
        again; a move that would overturn a triangle is undone. Boundary vertices stay. A final
-       complete flip pass and the checks of step 5 follow. On the 40,962-vertex icosphere
-       remeshed to 10,000 vertices this raises the mean radius ratio from 0.87 to 0.95 and the
-       smallest angle from 13 to 26 degrees, and lowers the sampled Hausdorff distance by about
-       25% (below pyacvd's), at about four times the cost of steps 1 to 5 (the whole call stays
-       over 10x faster than pyacvd; ``benchmarks/bench_sampling_remesh.py``).
+       complete flip pass and the checks of step 5 follow. This raises the radius ratios and
+       the smallest angles and lowers the sampled Hausdorff distance, at a few times the cost
+       of steps 1 to 5 (``benchmarks/bench_sampling_remesh.py`` measures both, against pyacvd).
        Unused vertices are dropped and the result is returned in the input frame and dtype.
 
     The output is manifold in the sense that every edge has at most two triangles, and every
@@ -181,20 +179,14 @@ def remesh_with_sources(
     mesh_indices: Int[Array, "num_faces 3"],
     n_clusters: int,
     *,
-    max_iterations: int = 4,
-    vertex_density: Float[Array, "num_vertices"] | None = None,
     density_exponent: float = 1.0,
     relaxation_iterations: int = RELAXATION_ITERATIONS,
-    search_radius_scale: float = 1.6,
-    voxel_width_scale: float = 1.15,
-    hash_grid_resolution: int = 128,
-    farthest_point_threshold: int = 256,
-    farthest_point_oversampling: int = 4,
-    implementation: str | None = None,
+    **options,
 ) -> RemeshResult:
     """:func:`remeshing`, also returning the source triangle and weights of each new vertex.
 
-    Same arguments, plus ``density_exponent`` ``p`` (a positive real): the mass density is
+    Takes the arguments of :func:`remeshing` (its keyword options, with its defaults, passed
+    through ``options``), plus ``density_exponent`` ``p`` (a positive real): the mass density is
     ``rho = (vertex_density / max)^p``. :func:`remeshing` uses ``p = 1``;
     :meth:`geomjax.Mesh.remesh` uses ``p = 4`` for a ``resolution_field`` (a linear
     resolution ``r`` is a CVT density ``r^4``); and ``relaxation_iterations`` (integer ``>=
@@ -212,26 +204,26 @@ def remesh_with_sources(
         >>> print(np.allclose(rebuilt, np.asarray(result.vertices)))
         True
     """
+    options = remesh_options(options)
     vertices, faces = check_host_surface(_NAME, mesh_vertices, mesh_indices, min_vertices=3)
     num_vertices = vertices.shape[0]
     n_clusters = check_integer("n_clusters", n_clusters, minimum=3)
     if n_clusters > num_vertices:
         raise ValueError(f"n_clusters must be at most the number of vertices {num_vertices}, got {n_clusters}")
-    max_iterations = check_integer("max_iterations", max_iterations, minimum=0)
-    density = _checked_density(vertex_density, vertices)
+    max_iterations = check_integer("max_iterations", options["max_iterations"], minimum=0)
+    density = _checked_density(options["vertex_density"], vertices)
     dtype = np.dtype(vertices.dtype)
     exponent = check_real_scalar("density_exponent", density_exponent, dtype, positive=True)
     relaxation_iterations = check_integer("relaxation_iterations", relaxation_iterations, minimum=0)
-    search_radius_scale = check_real_scalar("search_radius_scale", search_radius_scale, dtype, positive=True)
-    voxel_width_scale = check_real_scalar("voxel_width_scale", voxel_width_scale, dtype, positive=True)
-    resolution = check_integer("hash_grid_resolution", hash_grid_resolution, minimum=1)
+    search_radius_scale = check_real_scalar("search_radius_scale", options["search_radius_scale"], dtype, positive=True)
+    voxel_width_scale = check_real_scalar("voxel_width_scale", options["voxel_width_scale"], dtype, positive=True)
+    resolution = check_integer("hash_grid_resolution", options["hash_grid_resolution"], minimum=1)
     if resolution > MAX_HASH_GRID_RESOLUTION:
         raise ValueError(f"hash_grid_resolution must be at most {MAX_HASH_GRID_RESOLUTION}, got {resolution}")
-    farthest_point_threshold = check_integer("farthest_point_threshold", farthest_point_threshold, minimum=0)
-    farthest_point_oversampling = check_integer("farthest_point_oversampling", farthest_point_oversampling, minimum=1)
-    backend = select_implementation(
-        _NAME, implementation, backends=("jax", "warp"), default=DEFAULT_IMPLEMENTATION, platform=platform_of(vertices)
-    )
+    farthest_point_threshold = check_integer("farthest_point_threshold", options["farthest_point_threshold"], minimum=0)
+    farthest_point_oversampling = check_integer("farthest_point_oversampling", options["farthest_point_oversampling"], minimum=1)
+    # Not differentiated: only the backend's name matters here.
+    backend = select_implementation(_NAME, options["implementation"], platform=platform_of(vertices)).name
     device = next(iter(vertices.devices()))
     host = np.asarray(vertices)
 
@@ -318,6 +310,23 @@ def remesh_with_sources(
 
 # ---------------------------------------------------------------------------------------------
 # Validation.
+
+
+def remesh_options(options: dict, *, exclude: tuple[str, ...] = ()) -> dict:
+    """:func:`remeshing`'s keyword options (but ``exclude``), completed with its defaults.
+
+    One list of options and defaults serves the public function, ``remesh_with_sources`` and
+    ``Mesh.remesh``; an unknown name is a ``TypeError``, as for a misspelt keyword argument.
+    """
+    keyword_only = {
+        name: parameter.default
+        for name, parameter in inspect.signature(remeshing).parameters.items()
+        if parameter.kind is inspect.Parameter.KEYWORD_ONLY and name not in exclude
+    }
+    unknown = sorted(set(options) - set(keyword_only))
+    if unknown:
+        raise TypeError(f"{_NAME} got unexpected keyword arguments {unknown}; its options are {list(keyword_only)}")
+    return {name: options.get(name, default) for name, default in keyword_only.items()}
 
 
 def _checked_density(vertex_density, vertices: jax.Array) -> np.ndarray | None:
@@ -413,54 +422,6 @@ def _lloyd_jax_jit(x, mass, centroids, iterations):
 
 # ---------------------------------------------------------------------------------------------
 # Projection and topology.
-
-
-class SurfaceProjector:
-    """Closest points on a triangle surface: ``targets (K, 3)`` -> positions, faces, weights.
-
-    Shared by the remesher and the Poisson sampler's relaxation. The nearest face comes from a
-    Warp BVH (``backend="warp"``, built once per projector) or a brute-force JAX search
-    (``"jax"``); the point on it from :func:`closest_point_on_triangle`. Results are host NumPy
-    arrays in the dtype of ``vertices``.
-    """
-
-    def __init__(self, vertices: jax.Array, faces: np.ndarray, backend: str):
-        self.device = next(iter(vertices.devices()))
-        self.vertices = vertices
-        self.faces = jax.device_put(faces.astype(np.int32), self.device)
-        self.bvh = None
-        if backend == "warp":
-            from ..query.bvh import build_bvh
-
-            self.bvh = build_bvh(vertices, self.faces)
-
-    def __call__(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        points = jax.device_put(targets.astype(self.vertices.dtype), self.device)
-        if self.bvh is not None:
-            out = _project_with_bvh(self.bvh, points)
-        else:
-            out = _project_brute_force(self.vertices, self.faces, points)
-        return tuple(np.asarray(x) for x in out)
-
-
-@jax.jit
-def _project_with_bvh(bvh, points):
-    from ..query.bvh import closest_faces
-
-    face = closest_faces(bvh, points)
-    corners = bvh.vertices[bvh.faces[face]]
-    position, weights = closest_point_on_triangle(points, corners[:, 0], corners[:, 1], corners[:, 2])
-    return position, face, weights
-
-
-@jax.jit
-def _project_brute_force(vertices, faces, points):
-    from ..query.bvh import closest_faces_brute_force
-
-    face = closest_faces_brute_force(points, vertices, faces)[0]
-    corners = vertices[faces[face]]
-    position, weights = closest_point_on_triangle(points, corners[:, 0], corners[:, 1], corners[:, 2])
-    return position, face, weights
 
 
 def _cluster_triangles(labelled: np.ndarray, positions: np.ndarray) -> np.ndarray:
@@ -562,9 +523,7 @@ def _delaunay_flips(positions: np.ndarray, triangles: np.ndarray, rounds: int = 
         slot = np.minimum(np.searchsorted(edges, new_keys), edges.size - 1)
         degree = np.bincount(np.concatenate([edges // stride, edges % stride]), minlength=int(stride))
         old_normal = _unit(np.cross(x[v] - x[u], x[p] - x[u])) + _unit(np.cross(x[u] - x[v], x[q] - x[v]))
-        unfolded = (np.sum(np.cross(x[q] - x[u], x[p] - x[u]) * old_normal, axis=1) > 0) & (
-            np.sum(np.cross(x[v] - x[q], x[p] - x[q]) * old_normal, axis=1) > 0
-        )
+        unfolded = (np.sum(np.cross(x[q] - x[u], x[p] - x[u]) * old_normal, axis=1) > 0) & (np.sum(np.cross(x[v] - x[q], x[p] - x[q]) * old_normal, axis=1) > 0)
         candidates = np.flatnonzero((edges[slot] != new_keys) & (degree[u] > 3) & (degree[v] > 3) & unfolded)
         if candidates.size == 0:
             break
@@ -643,6 +602,7 @@ def _relaxation_targets(positions: np.ndarray, triangles: np.ndarray, vertex_rho
 
 def _overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """``(V,)`` bool: vertices of triangles whose normal turns by more than 90 degrees."""
+
     def normals(x):
         return np.cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
 

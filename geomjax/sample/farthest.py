@@ -10,18 +10,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._errors import raises_documented_errors
 from .._points import add_batch_axis, remove_batch_axis
 from .._validate import check_coordinates, check_integer
 
 __all__ = ["farthest_point_sampling"]
 
 
-def farthest_point_sampling(
-    points: Float[Array, "*batch num_points num_dims"],
-    num_samples: int,
-    *,
-    start_index: int = 0,
-) -> Int[Array, "*batch num_samples"]:
+@raises_documented_errors
+def farthest_point_sampling(points: Float[Array, "*batch num_points num_dims"], num_samples: int, *, start_index: int = 0) -> Int[Array, "*batch num_samples"]:
     """Indices of ``num_samples`` points chosen greedily, each the farthest from those before.
 
     Sample 0 is ``start_index``; sample ``k`` is the point maximising the Euclidean distance to

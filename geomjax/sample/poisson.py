@@ -15,18 +15,17 @@ from jaxtyping import Array, Float, Int
 
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
+from .._errors import raises_documented_errors
+from .._hash_grid import cell_order, check_cell_range, grid_resolution, table_dims
 from .._hashing import lowbias32
+from .._projection import SurfaceProjector
 from .._validate import check_choice, check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
-from ._hash_grid import cell_order, check_cell_range, grid_resolution, table_dims
 
 __all__ = ["mesh_poisson_disk_sample"]
 
 _NAME = "mesh_poisson_disk_sample"
 MODES = ("dart_throwing", "weighted_sample_elimination")
 
-# Faster backend per platform, as measured by benchmarks/bench_sampling_remesh.py on CPU (see the
-# docstring). GPUs are unmeasured; Warp is the reference's (only) backend there.
-DEFAULT_IMPLEMENTATION = {"cpu": "warp", "gpu": "warp"}
 
 # Conflicts are tested against squared radii widened by this factor: it exceeds the float32
 # rounding of the squared distances and radii, so no accepted pair is ever closer than its radius.
@@ -51,11 +50,12 @@ RELAXATION_RATE = 0.3  # push per unit summed force, in r_max
 RELAXATION_LIMIT = 0.25  # largest move per step, in r_max
 
 
+@raises_documented_errors
 def mesh_poisson_disk_sample(
     mesh_vertices: Float[Array, "num_vertices 3"],
-    mesh_indices: Int[Array, "num_faces 3"] | Int[Array, "num_indices"],
+    mesh_indices: Int[Array, "num_faces 3"] | Int[Array, " num_indices"],
     min_distance: float = 0.02,
-    per_vertex_radius: Float[Array, "num_vertices"] | None = None,
+    per_vertex_radius: Float[Array, " num_vertices"] | None = None,
     batch_size: int = 131072,
     max_points: int = 2_000_000,
     max_iterations: int = 64,
@@ -173,9 +173,8 @@ def mesh_poisson_disk_sample(
     check_choice("mode", mode, MODES)
     if target_num_points is not None:
         target_num_points = check_integer("target_num_points", target_num_points, minimum=1)
-    backend = select_implementation(
-        _NAME, implementation, backends=("jax", "warp"), default=DEFAULT_IMPLEMENTATION, platform=platform_of(vertices)
-    )
+    # Not differentiated: only the backend's name matters here.
+    backend = select_implementation(_NAME, implementation, platform=platform_of(vertices)).name
     device = next(iter(vertices.devices()))
     surface = _surface(vertices, faces, vertex_radius, min_distance)
     search = _WarpSearch(device) if backend == "warp" else _JaxSearch(device)
@@ -272,9 +271,7 @@ def surface_candidates(corners, corner_radius, cdf, seed, *, count: int):
 
 
 def _candidates(surface: _Surface, seed: int, count: int):
-    positions, radius, rank = surface_candidates(
-        surface.corners, surface.corner_radius, surface.cdf, jnp.asarray(seed, jnp.uint32), count=count
-    )
+    positions, radius, rank = surface_candidates(surface.corners, surface.corner_radius, surface.cdf, jnp.asarray(seed, jnp.uint32), count=count)
     return np.asarray(positions), np.asarray(radius), np.asarray(rank)
 
 
@@ -337,9 +334,7 @@ def _weighted_sample_elimination(surface: _Surface, search, target: int, seed: i
     dims = _grid_setup(surface, cell, resolution)
     row_offsets, columns = search.neighbour_lists(points, r_max32, limit, cell, dims, _neighbour_capacity(pool_size, target))
     rows = np.repeat(np.arange(pool_size, dtype=np.int32), np.diff(row_offsets))
-    ratios = np.asarray(
-        _pair_weight_ratios(jnp.asarray(points), jnp.asarray(rows), jnp.asarray(columns), np.float32(r_min), np.float32(r_max32))
-    )
+    ratios = np.asarray(_pair_weight_ratios(jnp.asarray(points), jnp.asarray(rows), jnp.asarray(columns), np.float32(r_min), np.float32(r_max32)))
     positive_degree = np.bincount(rows[ratios > 0], minlength=pool_size)
     scale = min(2**WEIGHT_BITS, (2**31 - 1) // max(1, int(positive_degree.max(initial=0))))
     pair_weight = np.rint(ratios.astype(np.float64) * scale).astype(np.int32)
@@ -378,8 +373,6 @@ def _neighbour_capacity(count: int, target: int) -> int:
 
 def _relax(samples: np.ndarray, surface: _Surface, search, r_max: float, limit: float, cell: float, dims, target: int) -> np.ndarray:
     """``RELAXATION_STEPS`` repulsion steps, each followed by projection onto the surface."""
-    from ..remesh.clustering import SurfaceProjector
-
     if RELAXATION_STEPS == 0:
         return samples
     project = SurfaceProjector(surface.vertices, surface.faces, search.backend)
@@ -426,6 +419,7 @@ class _WarpSearch:
         from warp_ffi.poisson import eliminate
 
         return eliminate(row_offsets, columns, pair_weight, weight, target)
+
 
 class _JaxSearch:
     backend = "jax"
@@ -482,6 +476,7 @@ class _JaxSearch:
         pairs[rows, slot] = pair_weight
         alive = _eliminate_jax(self.put(neighbours), self.put(pairs), self.put(weight), removals=num - target)
         return np.asarray(alive)
+
 
 def _squared_distances(a: jax.Array, b: jax.Array) -> jax.Array:
     d = a[:, None, :] - b[None, :, :]

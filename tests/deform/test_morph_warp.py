@@ -13,7 +13,6 @@ from jax.test_util import check_grads
 pytest.importorskip("warp")
 
 from geomjax import morph_points  # noqa: E402
-from geomjax.deform import morph as morph_module  # noqa: E402
 from warp_ffi import morph as warp_morph  # noqa: E402
 
 TOLERANCE = {jnp.dtype(jnp.float32): 2e-5, jnp.dtype(jnp.float64): 1e-11}
@@ -188,13 +187,6 @@ def test_threaded_launch_matches_single_thread(monkeypatch):
     for a, b in zip(results["1"][1], results["3"][1], strict=True):
         _close(a, b, jnp.float64)  # control gradients are summed in another order
     _close(results["1"][0], morph_points(points, controls, displacements, radius=radius, implementation="jax"), jnp.float64)
-
-
-def test_default_implementation_follows_the_documented_rule():
-    points, controls, displacements, radius = _case((30, 3), (6, 3), jnp.float32, seed=12)
-    default = morph_points(points, controls, displacements, radius=radius)
-    chosen = morph_module.DEFAULT_IMPLEMENTATION.get(jax.default_backend(), "jax")
-    np.testing.assert_array_equal(default, morph_points(points, controls, displacements, radius=radius, implementation=chosen))
 
 
 def test_empty_inputs_on_warp():

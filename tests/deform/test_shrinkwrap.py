@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 from geomjax import build_bvh, icosphere, shrinkwrap_points
-from geomjax.deform.shrinkwrap import DEFAULT_IMPLEMENTATION, _nearest_faces_warp, nearest_faces_jax, valid_triangles
+from geomjax.deform.shrinkwrap import _nearest_faces_warp, nearest_faces_jax, valid_triangles
 from geomjax.query.bvh import closest_faces_brute_force
 
 BACKENDS = ["jax", "warp"]
@@ -200,10 +200,6 @@ def test_empty_points(implementation):
         assert out.shape == shape
     grads = jax.grad(lambda t: shrinkwrap_points(jnp.zeros((0, 3)), t, faces, implementation=implementation).sum())(vertices)
     np.testing.assert_array_equal(grads, 0)
-
-
-def test_default_is_the_bvh_search():
-    assert DEFAULT_IMPLEMENTATION == {"cpu": "warp", "gpu": "warp"}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -21,7 +21,8 @@ from tests.linalg.meshes import MESHES, dense_sobolev, grid_triangles, kuhn_simp
 LENGTH = 0.3
 # Runtime checks inside a user's jit or grad (equinox.error_if) raise JaxRuntimeError on an
 # executable's first run and, from JAX's cached C++ dispatch path, ValueError("INTERNAL: ...")
-# afterwards; both carry the message. Eager calls of the op always raise RuntimeError.
+# afterwards; both carry the message. Eager calls of the op raise the documented type
+# (RuntimeError for non-convergence, ValueError for bad indices and degenerate cells).
 TRACED_ERRORS = (RuntimeError, ValueError)
 
 

@@ -16,7 +16,7 @@ from geomjax.query.bvh import (  # noqa: E402
     closest_faces_brute_force,
     consistently_oriented_faces,
 )
-from geomjax.query._triangle import closest_point_on_triangle  # noqa: E402
+from geomjax._geometry import closest_point_on_triangle  # noqa: E402
 
 DTYPES = [jnp.float32, jnp.float64]
 

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-import geomjax
 from geomjax import MeshBVH, icosphere, ray_mesh_intersect
 
 BACKENDS = ["jax", pytest.param("warp", marks=pytest.mark.filterwarnings("ignore"))]
@@ -182,7 +181,3 @@ def test_errors(implementation):
         call(vertices[:0], faces, rays, rays)
     with pytest.raises(KeyError):
         ray_mesh_intersect(vertices, faces, rays, rays, implementation="embree")
-
-
-def test_default_is_warp():
-    assert geomjax.query.ray.DEFAULT_IMPLEMENTATION == {"cpu": "warp", "gpu": "warp"}

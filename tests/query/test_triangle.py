@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from geomjax.query import _triangle
+from geomjax import _geometry as _triangle
 
 # Jitted once per module: op-by-op dispatch of the many small ops would dominate the test time.
 closest_point_on_triangle = jax.jit(_triangle.closest_point_on_triangle)

@@ -9,7 +9,7 @@ from jax.test_util import check_grads
 
 from geomjax import Mesh, icosphere, rectangle, remeshing, tetrahedralized_box
 from geomjax.remesh.clustering import remesh_with_sources
-from geomjax.sample import quality
+from benchmarks import _quality as quality
 
 pytest.importorskip("warp")
 

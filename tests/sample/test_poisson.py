@@ -11,7 +11,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from geomjax import icosphere, mesh_poisson_disk_sample, rectangle
-from geomjax.sample import poisson, quality
+from benchmarks import _quality as quality
+from geomjax.sample import poisson
 
 pytest.importorskip("warp")
 
@@ -66,7 +67,7 @@ def test_adaptive_radius_uses_min_of_the_pair(implementation):
     # The radius at a sample: barycentric interpolation on its (closest) triangle.
     host = np.asarray(samples, np.float64)
     from geomjax.query.bvh import closest_faces_brute_force
-    from geomjax.query._triangle import closest_point_on_triangle
+    from geomjax._geometry import closest_point_on_triangle
 
     v64 = jnp.asarray(np.asarray(vertices), jnp.float64)
     ids, _ = closest_faces_brute_force(jnp.asarray(host), v64, faces)

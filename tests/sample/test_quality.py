@@ -5,8 +5,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from geomjax import icosphere
-from geomjax.sample import quality
-from geomjax.sample._hash_grid import cell_order, grid_resolution, nearest_distances, table_dims
+from benchmarks import _quality as quality
+from geomjax._hash_grid import cell_order, grid_resolution, nearest_distances, table_dims
 
 
 @pytest.mark.parametrize("layout", ["surface", "volume", "clustered"])

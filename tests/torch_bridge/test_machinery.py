@@ -3,8 +3,10 @@ gradients, DLPack, float64 without JAX configuration, the eager fast path vs the
 
 from __future__ import annotations
 
+import ast
 import inspect
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -16,11 +18,13 @@ import pytest
 import torch
 from torch.overrides import TorchFunctionMode
 
+import geomjax
 import torch_bridge
-from torch_bridge import _bridge
-from torch_bridge._bridge import BridgedOp, make_public_function
+from torch_bridge import _dlpack, _lift
+from torch_bridge._signature import BridgedOp, make_public_function
 
 REPO = Path(__file__).resolve().parents[2]
+REFERENCE_API = REPO.parent / "shared" / "spec" / "reference-api.txt"
 
 
 def _toy(points, *, scale=2.0, powers=(3,)):
@@ -52,6 +56,48 @@ def test_generated_signature_follows_the_table_entry():
     assert str(TOY.lifted.op._schema) == (
         "geomjax::bridge_test_toy(Tensor points, float scale, int[] powers, bool[] requires_grad) -> (Tensor, Tensor, Tensor)"
     )
+
+
+def _reference_signatures() -> dict:
+    """Each function's signature in the reference API text: ``{name: [(parameter, keyword_only,
+    default), ...]}``, read from the blocks ``physicsnemo.nn.functional.<name>(`` ... ``) <returns>#``."""
+    text = REFERENCE_API.read_text()
+    signatures = {}
+    for match in re.finditer(r"^physicsnemo\.nn\.functional\.(\w+)\(\n(.*?)^\) ", text, re.MULTILINE | re.DOTALL):
+        tree = ast.parse(f"def {match[1]}({match[2]}): pass").body[0]
+        positional, keyword_only = tree.args.args, tree.args.kwonlyargs
+        defaults = [None] * (len(positional) - len(tree.args.defaults)) + list(tree.args.defaults)
+        defaults += list(tree.args.kw_defaults)
+        signatures[match[1]] = [
+            (arg.arg, i >= len(positional), inspect.Parameter.empty if d is None else ast.literal_eval(d))
+            for i, (arg, d) in enumerate(zip([*positional, *keyword_only], defaults))
+        ]
+    return signatures
+
+
+@pytest.mark.skipif(not REFERENCE_API.exists(), reason="the reference API text is in the shared folder")
+def test_generated_signatures_equal_the_reference_api():
+    """Names, order, keyword-only marker and defaults of every public function (derived from
+    geomjax) are the reference's documented ones."""
+    reference = _reference_signatures()
+    assert set(reference) <= set(torch_bridge.__all__)  # farthest_point_sampling is ours alone
+    for name in reference:
+        ours = [
+            (p.name, p.kind == p.KEYWORD_ONLY, p.default)
+            for p in inspect.signature(getattr(torch_bridge, name)).parameters.values()
+        ]
+        assert ours == reference[name], name
+        assert all(type(a[2]) is type(b[2]) for a, b in zip(ours, reference[name])), name  # 1 vs 1.0
+
+
+def test_signatures_are_derived_from_geomjax_with_table_overrides():
+    op = torch_bridge.mesh_to_voxel_fraction.bridged_op
+    assert op.function is geomjax.mesh_to_voxel_fraction
+    assert "int[] grid_dims" in str(op.lifted.op._schema)  # the table's Sequence[int], not geomjax's tensor form
+    assert [p.name for p in torch_bridge.shrinkwrap_points.bridged_op.parameters][-1] == "implementation"  # no bvh
+    handle = torch_bridge.ray_mesh_intersect.bridged_op
+    assert [p.name for p in handle.parameters][4:6] == ["max_distance", "warp_mesh_handle"]
+    assert handle.parameters[4].default == inspect.signature(geomjax.ray_mesh_intersect).parameters["max_distance"].default
 
 
 def test_union_annotations_split_into_tensor_and_static_slots():
@@ -161,19 +207,19 @@ def test_compile_with_dynamic_shapes():
 
 def test_dlpack_is_zero_copy_both_ways():
     t = _points(torch.float32, (64, 3))
-    a = _bridge.to_jax(t)
+    a = _dlpack.to_jax(t)
     assert a.unsafe_buffer_pointer() == t.data_ptr()
     b = jnp.sin(a)
-    back = _bridge.to_torch(b, t.device)
+    back = _dlpack.to_torch(b, t.device)
     assert back.data_ptr() == b.unsafe_buffer_pointer()
     torch.testing.assert_close(back, torch.sin(t))
 
 
 def test_cpu_views_are_reused_and_follow_the_tensor():
-    views = _bridge._cpu_views
+    views = _dlpack._cpu_views
     p, d = _points(torch.float32, (16, 3)), _points(torch.float32, (16, 3), seed=1)
     first = torch_bridge.displace_points(p, d)
-    assert _bridge.to_jax(p) is _bridge.to_jax(p)  # a kept view: no DLPack import per call
+    assert _dlpack.to_jax(p) is _dlpack.to_jax(p)  # a kept view: no DLPack import per call
     with torch.no_grad():
         p.mul_(2.0)  # in place: same memory, the kept view sees it
     torch.testing.assert_close(torch_bridge.displace_points(p, d), 2 * (first - d) + d)
@@ -185,14 +231,14 @@ def test_cpu_views_are_reused_and_follow_the_tensor():
     assert key not in views._views  # released with the tensor
     strided = _points(torch.float32, (3, 16)).T
     before = len(views._views)
-    _bridge.to_jax(strided)  # a contiguous copy is a snapshot: never kept
+    _dlpack.to_jax(strided)  # a contiguous copy is a snapshot: never kept
     assert len(views._views) == before
 
 
 def test_small_tensors_get_a_kept_view_on_their_second_call_only():
     """A tensor made anew for every call goes through NumPy (no view, no weak reference); one
     that comes back gets a kept view; large tensors are kept from the first call."""
-    views = _bridge._cpu_views
+    views = _dlpack._cpu_views
     p, d = _points(torch.float32, (16, 3)), _points(torch.float32, (16, 3), seed=1)
     once = torch_bridge.displace_points(p, d)
     assert id(p) not in views._views and id(d) not in views._views
@@ -201,17 +247,17 @@ def test_small_tensors_get_a_kept_view_on_their_second_call_only():
         p.add_(1.0)  # in place between the NumPy call and the kept view: both see the memory
     torch.testing.assert_close(torch_bridge.displace_points(p, d), p + d, rtol=0, atol=0)
     assert id(p) in views._views and id(d) in views._views
-    large = _points(torch.float32, (_bridge.SMALL_CPU_BYTES // 12 + 1, 3))
-    _bridge.to_jax(large, jit_argument=True)
+    large = _points(torch.float32, (_dlpack.SMALL_CPU_BYTES // 12 + 1, 3))
+    _dlpack.to_jax(large, jit_argument=True)
     assert id(large) in views._views
     half = torch.full((4, 3), 1.5, dtype=torch.bfloat16)  # no NumPy dtype: DLPack from the first call
-    array = _bridge.to_jax(half, jit_argument=True)
+    array = _dlpack.to_jax(half, jit_argument=True)
     assert isinstance(array, jax.Array) and array.dtype == jnp.bfloat16
     np.testing.assert_array_equal(np.asarray(array, np.float32), np.full((4, 3), 1.5, np.float32))
 
 
 def test_empty_arrays_convert():
-    out = _bridge.to_torch(jnp.zeros((0, 3), jnp.float32), torch.device("cpu"))
+    out = _dlpack.to_torch(jnp.zeros((0, 3), jnp.float32), torch.device("cpu"))
     assert out.shape == (0, 3) and out.dtype == torch.float32
 
 
@@ -295,10 +341,10 @@ def test_dispatcher_path_equals_eager_fast_path():
         grads = torch.autograd.grad(out, (p, c, d), torch.ones_like(out))
         return out.detach(), grads
 
-    assert _bridge._plain_eager([_points()])
+    assert _lift._plain_eager([_points()])
     fast = run()
     with _PassThrough():
-        assert not _bridge._plain_eager([_points()])
+        assert not _lift._plain_eager([_points()])
         dispatched = run()
     torch.testing.assert_close(dispatched[0], fast[0], rtol=0, atol=0)
     for a, b in zip(dispatched[1], fast[1]):

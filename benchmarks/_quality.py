@@ -1,7 +1,7 @@
 """Quality measures for surface samples and triangle meshes (diagnostics, NumPy results).
 
-Used by the tests and by ``benchmarks/bench_sampling_remesh.py`` to compare samplers and
-remeshers. Every function takes JAX or NumPy arrays and returns NumPy floats or dicts of them;
+Test and benchmark code, not library API: used by the tests and by
+``benchmarks/bench_sampling_remesh.py`` to compare samplers and remeshers. Every function takes JAX or NumPy arrays and returns NumPy floats or dicts of them;
 distances are computed in float64 and are exact (no approximate nearest neighbours). Surface
 distances use a Warp BVH (:func:`geomjax.build_bvh`), so the Hausdorff measure needs warp-lang.
 
@@ -17,7 +17,7 @@ distances use a Warp BVH (:func:`geomjax.build_bvh`), so the Hausdorff measure n
 Example:
     >>> import numpy as np
     >>> from geomjax import icosphere
-    >>> from geomjax.sample import quality
+    >>> from benchmarks import _quality as quality
     >>> sphere = icosphere(2)
     >>> stats = quality.triangle_quality(sphere.points, sphere.cells)
     >>> print(round(stats["min_angle_deg_min"], 1), round(stats["radius_ratio_mean"], 3))
@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from ._hash_grid import nearest_distances
+from geomjax._hash_grid import nearest_distances
 
 __all__ = [
     "surface_area",
@@ -67,7 +67,7 @@ def nearest_neighbour_distances(points) -> np.ndarray:
 
     Example:
         >>> import numpy as np
-        >>> from geomjax.sample.quality import nearest_neighbour_distances
+        >>> from benchmarks._quality import nearest_neighbour_distances
         >>> print(nearest_neighbour_distances(np.array([[0.0, 0, 0], [1, 0, 0], [3, 0, 0]])))
         [1. 1. 2.]
     """
@@ -141,8 +141,8 @@ def surface_distances(points, vertices, faces) -> np.ndarray:
     import jax
     import jax.numpy as jnp
 
-    from ..query._triangle import closest_point_on_triangle
-    from ..query.bvh import build_bvh, closest_faces
+    from geomjax._geometry import closest_point_on_triangle
+    from geomjax.query.bvh import build_bvh, closest_faces
 
     with jax.enable_x64(True):
         v = jnp.asarray(np.asarray(vertices, np.float64))

@@ -22,7 +22,7 @@ import numbers
 
 import numpy as np
 
-from .._validate import is_array
+from ._validate import is_array
 
 __all__ = ["grid_resolution", "table_dims", "check_cell_range", "cell_order", "nearest_distances"]
 
@@ -74,10 +74,7 @@ def table_dims(low: np.ndarray, high: np.ndarray, cell_width: float, resolution:
 def check_cell_range(name: str, largest_coordinate: float, cell_width: float) -> None:
     """Cell indices must fit int32: ``ValueError`` when coordinates are too many cells from 0."""
     if largest_coordinate / cell_width >= MAX_CELL_COORDINATE:
-        raise ValueError(
-            f"{name}={cell_width:g} is too small for coordinates up to {largest_coordinate:g}: the grid would need "
-            f"more than 2**30 cells per axis"
-        )
+        raise ValueError(f"{name}={cell_width:g} is too small for coordinates up to {largest_coordinate:g}: the grid would need more than 2**30 cells per axis")
 
 
 def cell_order(points: np.ndarray, cell_width: float) -> np.ndarray:

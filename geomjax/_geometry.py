@@ -1,12 +1,14 @@
-"""Point-triangle and ray-triangle geometry in pure JAX, shared by every surface query.
+"""Shared geometry in pure JAX: closest point on a triangle, ray-triangle hits, winding numbers,
+the overflow-safe norm.
 
 This is the one projection helper of the package (DESIGN.md): shrinkwrap, the signed distance
 field and remeshing all replay their closest points through :func:`closest_point_on_triangle`,
-and ray casting replays its hits through :func:`ray_triangle_intersection`. Every function
-broadcasts over leading axes (``(..., 3)`` inputs), works in float32 and float64, and is
-differentiable with finite gradients everywhere: branches are selected with ``where`` and every
-division has a guarded denominator, so no NaN or infinity leaks into a gradient from a branch
-that was not taken (degenerate triangles, zero directions, points exactly on an edge).
+ray casting replays its hits through :func:`ray_triangle_intersection`, and the signed distance
+field and voxel fractions share :func:`winding_numbers`. Every function broadcasts over leading
+axes (``(..., 3)`` inputs), works in float32 and float64, and is differentiable with finite
+gradients everywhere: branches are selected with ``where`` and every division has a guarded
+denominator, so no NaN or infinity leaks into a gradient from a branch that was not taken
+(degenerate triangles, zero directions, points exactly on an edge).
 
 Robust scaling: coordinates are quartered when they come near the float maximum (so differences
 cannot overflow), then every difference is divided by a power of two close to the triangle's
@@ -23,7 +25,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-__all__ = ["closest_point_on_triangle", "ray_plane_intersection", "ray_triangle_intersection", "triangle_normal"]
+__all__ = ["closest_point_on_triangle", "overflow_safe_norm", "ray_plane_intersection", "ray_triangle_intersection", "triangle_normal", "winding_numbers"]
+
+# One point or vector per leading index; the ray functions take five of them.
+Vector = Float[Array, "*batch 3"]
+RayHit = tuple[Float[Array, "*batch"], Float[Array, "*batch 3"], Bool[Array, "*batch"]]
 
 
 def _dot(x, y):
@@ -75,10 +81,7 @@ def _safe_divide(numerator, denominator, valid):
 
 
 def closest_point_on_triangle(
-    p: Float[Array, "*batch 3"],
-    a: Float[Array, "*batch 3"],
-    b: Float[Array, "*batch 3"],
-    c: Float[Array, "*batch 3"],
+    p: Float[Array, "*batch 3"], a: Float[Array, "*batch 3"], b: Float[Array, "*batch 3"], c: Float[Array, "*batch 3"]
 ) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3"]]:
     """Closest point to ``p`` on the solid triangle ``(a, b, c)`` and its barycentric coordinates.
 
@@ -105,7 +108,7 @@ def closest_point_on_triangle(
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
-        >>> from geomjax.query._triangle import closest_point_on_triangle
+        >>> from geomjax._geometry import closest_point_on_triangle
         >>> a, b, c = jnp.array([0.0, 0, 0]), jnp.array([1.0, 0, 0]), jnp.array([0.0, 1, 0])
         >>> point, weights = closest_point_on_triangle(jnp.array([[0.2, 0.3, 2.0], [2.0, 2.0, 0.0]]), a, b, c)
         >>> print(np.round(np.asarray(point), 3))
@@ -150,13 +153,7 @@ def closest_point_on_triangle(
     return point, weights
 
 
-def ray_triangle_intersection(
-    origin: Float[Array, "*batch 3"],
-    direction: Float[Array, "*batch 3"],
-    a: Float[Array, "*batch 3"],
-    b: Float[Array, "*batch 3"],
-    c: Float[Array, "*batch 3"],
-) -> tuple[Float[Array, "*batch"], Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+def ray_triangle_intersection(origin: Vector, direction: Vector, a: Vector, b: Vector, c: Vector) -> RayHit:
     """Intersection of the ray ``origin + t * direction`` (``t >= 0``) with triangle ``(a, b, c)``.
 
     Möller-Trumbore on scaled coordinates (edges and ``origin - a`` in triangle units, the
@@ -179,7 +176,7 @@ def ray_triangle_intersection(
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
-        >>> from geomjax.query._triangle import ray_triangle_intersection
+        >>> from geomjax._geometry import ray_triangle_intersection
         >>> a, b, c = jnp.array([0.0, 0, 1]), jnp.array([1.0, 0, 1]), jnp.array([0.0, 1, 1])
         >>> t, weights, hit = ray_triangle_intersection(jnp.array([0.25, 0.25, 0.0]), jnp.array([0.0, 0, 2]), a, b, c)
         >>> print(float(t), np.round(np.asarray(weights), 3), bool(hit))
@@ -190,13 +187,7 @@ def ray_triangle_intersection(
     return jnp.where(hit, t, jnp.inf), jnp.where(hit[..., None], weights, 0), hit
 
 
-def ray_plane_intersection(
-    origin: Float[Array, "*batch 3"],
-    direction: Float[Array, "*batch 3"],
-    a: Float[Array, "*batch 3"],
-    b: Float[Array, "*batch 3"],
-    c: Float[Array, "*batch 3"],
-) -> tuple[Float[Array, "*batch"], Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+def ray_plane_intersection(origin: Vector, direction: Vector, a: Vector, b: Vector, c: Vector) -> RayHit:
     """Where the line ``origin + t * direction`` meets the plane of ``(a, b, c)``, ungated.
 
     The computation of :func:`ray_triangle_intersection` without its inside and ``t >= 0``
@@ -207,7 +198,7 @@ def ray_plane_intersection(
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
-        >>> from geomjax.query._triangle import ray_plane_intersection
+        >>> from geomjax._geometry import ray_plane_intersection
         >>> a, b, c = jnp.array([0.0, 0, 1]), jnp.array([1.0, 0, 1]), jnp.array([0.0, 1, 1])
         >>> t, weights, valid = ray_plane_intersection(jnp.array([2.0, 0.5, 3]), jnp.array([0.0, 0, 1]), a, b, c)
         >>> print(float(t), np.asarray(weights), bool(valid))
@@ -233,9 +224,7 @@ def ray_plane_intersection(
     return t, weights, valid
 
 
-def triangle_normal(
-    a: Float[Array, "*batch 3"], b: Float[Array, "*batch 3"], c: Float[Array, "*batch 3"]
-) -> Float[Array, "*batch 3"]:
+def triangle_normal(a: Float[Array, "*batch 3"], b: Float[Array, "*batch 3"], c: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
     """Unit normal ``(b - a) x (c - a) / |...|`` following the winding (counter-clockwise = up).
 
     Computed on scaled edges, so tiny and huge triangles keep full precision; a degenerate
@@ -243,7 +232,7 @@ def triangle_normal(
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
-        >>> from geomjax.query._triangle import triangle_normal
+        >>> from geomjax._geometry import triangle_normal
         >>> n = triangle_normal(jnp.array([0.0, 0, 0]), jnp.array([0.0, 1e-30, 0]), jnp.array([1e-30, 0, 0]))
         >>> print(np.asarray(n))
         [ 0.  0. -1.]
@@ -259,3 +248,31 @@ def triangle_normal(
     one = jnp.ones((), normal.dtype)
     norm = jnp.sqrt(jnp.where(valid, norm2, one))
     return jnp.where(valid, unit_ish / norm, 0)
+
+
+def winding_numbers(points: Float[Array, "num_points 3"], triangles: Float[Array, "num_faces 3 3"]) -> Float[Array, " num_points"]:
+    """Exact generalized winding numbers ``sum_f omega_f / (4 pi)`` of points w.r.t. triangles.
+
+    Each triangle's signed solid angle is the Van Oosterom-Strackee formula. Memory is
+    ``O(points x faces)``: callers block over the points (``map_query_blocks``).
+    """
+    relative = triangles[None] - points[:, None, None, :]
+    a, b, c = relative[:, :, 0], relative[:, :, 1], relative[:, :, 2]
+    la, lb, lc = (jnp.linalg.norm(x, axis=-1) for x in (a, b, c))
+    det = jnp.sum(a * jnp.cross(b, c), -1)
+    denominator = la * lb * lc + jnp.sum(a * b, -1) * lc + jnp.sum(b * c, -1) * la + jnp.sum(c * a, -1) * lb
+    return jnp.sum(2 * jnp.arctan2(det, denominator), axis=1) / (4 * jnp.pi)
+
+
+def overflow_safe_norm(x: Float[Array, "*batch dims"]) -> Float[Array, "*batch"]:
+    """``|x|`` over the last axis without overflow or underflow; zero gradient at ``x = 0``.
+
+    The components are divided by the largest magnitude (not differentiated) before squaring,
+    so the squares neither overflow for huge coordinates nor flush to zero for tiny ones.
+    """
+    largest = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=-1))
+    usable = (largest > 0) & jnp.isfinite(largest)
+    one = jnp.ones((), x.dtype)
+    scale = jnp.where(usable, largest, one)
+    sumsq = jnp.sum(jnp.square(x / scale[..., None]), axis=-1)
+    return jnp.where(usable, scale * jnp.sqrt(jnp.where(usable, sumsq, one)), jnp.where(largest > 0, largest, 0))
