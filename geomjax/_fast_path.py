@@ -39,6 +39,12 @@ def _differentiable(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
+def _filled(base, selected, values) -> list:
+    """``base`` with its ``selected`` positions replaced, in order, by ``values``."""
+    it = iter(values)
+    return [next(it) if chosen else b for b, chosen in zip(base, selected)]
+
+
 def _unsupported(op_name: str, backend: str, transform: str) -> NotImplementedError:
     return NotImplementedError(
         f"{op_name}: implementation={backend!r} supports values and first-order reverse mode only; "
@@ -67,19 +73,13 @@ def fast_with_reference(
     """
     if any(a is None for a in args):
         # Absent optional arrays are not operands: bind them into both functions.
-        present = [i for i, a in enumerate(args) if a is not None]
-        num_args = len(args)
+        present = tuple(a is not None for a in args)
+        absent = [None] * len(args)
 
         def with_absent(fn):
-            def filled(*arrays):
-                full = [None] * num_args
-                for i, a in zip(present, arrays):
-                    full[i] = a
-                return fn(*full)
+            return lambda *arrays: fn(*_filled(absent, present, arrays))
 
-            return filled
-
-        fast, reference, args = with_absent(fast), with_absent(reference), [args[i] for i in present]
+        fast, reference, args = with_absent(fast), with_absent(reference), [a for a in args if a is not None]
     args = tuple(jnp.asarray(a) for a in args)
     mask = tuple(_differentiable(a) for a in args)
 
@@ -88,9 +88,8 @@ def fast_with_reference(
         (``fast`` and ``reference`` return the same dtypes, so both keep the same outputs)."""
 
         def restricted(primals, *diff_args):
-            it = iter(diff_args)
-            full = [next(it) if m else p for p, m in zip(primals, mask)]
-            return tuple(leaf for leaf in jax.tree.leaves(fn(*full)) if _differentiable(leaf))
+            leaves = jax.tree.leaves(fn(*_filled(primals, mask, diff_args)))
+            return tuple(leaf for leaf in leaves if _differentiable(leaf))
 
         return restricted
 
@@ -176,18 +175,15 @@ def _tangent_jvp(primals_in, tangents_in, *, tangent_fn, adjoint_fn, out_avals, 
     # Differentiating the tangent map itself (jacrev of jacfwd, jacfwd of jacfwd): plain JAX
     # derivatives of tangent_fn, which is the reference's JVP.
     del adjoint_fn, out_avals
-    primals, tangents = list(primals_in[:num_primals]), tuple(primals_in[num_primals:])
-    diff_positions = [i for i, p in enumerate(primals) if _differentiable(p)]
+    primals, tangents = primals_in[:num_primals], tuple(primals_in[num_primals:])
+    mask = tuple(_differentiable(p) for p in primals)
 
     def tangent_of(diff_primals, tangents):
-        full = list(primals)
-        for i, p in zip(diff_positions, diff_primals):
-            full[i] = p
-        return tuple(tangent_fn(tuple(full), tangents))
+        return tuple(tangent_fn(tuple(_filled(primals, mask, diff_primals)), tangents))
 
-    primal_dots = tuple(ad.instantiate_zeros(tangents_in[i]) for i in diff_positions)
+    primal_dots = tuple(ad.instantiate_zeros(t) for t, m in zip(tangents_in[:num_primals], mask) if m)
     tangent_dots = tuple(ad.instantiate_zeros(t) for t in tangents_in[num_primals:])
-    diff_primals = tuple(primals[i] for i in diff_positions)
+    diff_primals = tuple(p for p, m in zip(primals, mask) if m)
     out, out_dot = jax.jvp(tangent_of, (diff_primals, tangents), (primal_dots, tangent_dots))
     return list(out), list(out_dot)
 
