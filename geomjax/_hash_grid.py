@@ -62,13 +62,15 @@ def grid_resolution(name: str, value) -> tuple[int, int, int]:
         raise TypeError(f"{name} must be an integer or three integers, got {type(value).__name__}")
     if min(values) < 1:
         raise ValueError(f"{name} must be positive, got {tuple(values)}")
-    return tuple(values)
+    nx, ny, nz = values
+    return nx, ny, nz
 
 
 def table_dims(low: np.ndarray, high: np.ndarray, cell_width: float, resolution: tuple[int, int, int]) -> tuple[int, int, int]:
     """Hash-table dimensions: ``resolution`` clamped to the cells spanned by ``[low, high]``, >= 3."""
     spans = np.floor(np.asarray(high, np.float64) / cell_width) - np.floor(np.asarray(low, np.float64) / cell_width) + 1
-    return tuple(int(max(3, min(r, s))) for r, s in zip(resolution, spans, strict=True))
+    nx, ny, nz = (int(max(3, min(r, s))) for r, s in zip(resolution, spans, strict=True))
+    return nx, ny, nz
 
 
 def check_cell_range(name: str, largest_coordinate: float, cell_width: float) -> None:

@@ -6,10 +6,19 @@ Every deformation computes a displacement field ``u`` on ``(B, N, D)`` points an
 
 from __future__ import annotations
 
+from typing import overload
+
 import jax
 import jax.numpy as jnp
 
 
+# Optional inputs (weights, masks) pass through as ``None``; arrays keep their type.
+@overload
+def add_batch_axis(x: jax.Array, batched: bool) -> jax.Array: ...
+@overload
+def add_batch_axis(x: None, batched: bool) -> None: ...
+@overload
+def add_batch_axis(x: jax.Array | None, batched: bool) -> jax.Array | None: ...
 def add_batch_axis(x: jax.Array | None, batched: bool) -> jax.Array | None:
     """Give unbatched inputs a leading batch axis of one; leave batched ones alone."""
     if x is None or batched:

@@ -38,7 +38,8 @@ class SurfaceProjector:
             out = _project_with_bvh(self.bvh, points)
         else:
             out = _project_brute_force(self.vertices, self.faces, points)
-        return tuple(np.asarray(x) for x in out)
+        positions, faces, barycentric = out
+        return np.asarray(positions), np.asarray(faces), np.asarray(barycentric)
 
 
 @jax.jit

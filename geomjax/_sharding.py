@@ -74,7 +74,8 @@ def map_local_shards(fn: Callable, args: Sequence, shared_axes: Sequence[int], *
     if mesh is None:
         return fn(*args)
     num_lead = max(k for _, k in present)
-    lead_size = [None] * num_lead
+    # Every entry is set below: an argument with k == num_lead spans all the leading axes.
+    lead_size = [0] * num_lead
     for a, k in present:
         for axis in range(k):
             lead_size[axis] = a.shape[axis]

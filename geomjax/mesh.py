@@ -16,6 +16,7 @@ import importlib
 import inspect
 import itertools
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any, Protocol, cast
 
 import equinox as eqx
 import jax
@@ -24,7 +25,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._errors import raises_documented_errors, runtime_check
-from ._registry import REGISTRY, OpDeclaration
+from ._registry import REGISTRY, MeshArguments, OpDeclaration
 from ._validate import as_float_array, check_real_sequence, check_same_device, check_same_dtype, check_same_shape, is_array
 
 __all__ = ["Mesh", "Topology"]
@@ -263,7 +264,7 @@ class Mesh(eqx.Module):
         if not isinstance(value, (str, tuple)):
             return value
         path = (value,) if isinstance(value, str) else value
-        node = self.point_data
+        node: object = self.point_data
         for key in path:
             if not isinstance(node, Mapping) or key not in node:
                 node = None
@@ -394,10 +395,25 @@ _SOURCE_DESCRIPTIONS = {
 _KEY_NOTE = "may also be given as ``point_data`` keys (a name or a tuple path into nested data; a missing key is a ``KeyError`` listing the available ones)"
 
 
-def _generated_method(declaration: OpDeclaration) -> Callable:
-    """The ``Mesh`` method of ``declaration``: the op's signature minus the arguments the mesh binds."""
+class _SignedFunction(Protocol):
+    """A function given an explicit ``__signature__``, which ``inspect.signature`` reports."""
+
+    __signature__: inspect.Signature
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any: ...
+
+
+def _with_signature(function: Callable[..., Any], signature: inspect.Signature) -> _SignedFunction:
+    # Function objects take new attributes at run time; typeshed's function type has no
+    # ``__signature__``, so the function is viewed through the Protocol that declares it.
+    signed = cast(_SignedFunction, function)
+    signed.__signature__ = signature
+    return signed
+
+
+def _generated_method(declaration: OpDeclaration, binding: MeshArguments, method_name: str) -> Callable:
+    """The ``Mesh`` method ``method_name`` of ``declaration``: the op's signature minus the arguments ``binding`` binds."""
     op = getattr(importlib.import_module(declaration.module), declaration.name)
-    binding = declaration.mesh_arguments
     op_signature = inspect.signature(op)
     parameters = [inspect.Parameter("self", inspect.Parameter.POSITIONAL_OR_KEYWORD)]
     for name, parameter in op_signature.parameters.items():
@@ -427,16 +443,17 @@ def _generated_method(declaration: OpDeclaration) -> Callable:
             return op(**call)
         return self.with_points(op(**call))
 
-    method.__name__ = declaration.mesh_method
-    method.__qualname__ = f"Mesh.{declaration.mesh_method}"
-    method.__signature__ = signature
-    method.__doc__ = _generated_docstring(declaration, op)
-    return method
+    method.__name__ = method_name
+    method.__qualname__ = f"Mesh.{method_name}"
+    method.__doc__ = _generated_docstring(declaration, binding, op)
+    return _with_signature(method, signature)
 
 
-def _generated_docstring(declaration: OpDeclaration, op: Callable) -> str:
-    binding = declaration.mesh_arguments
-    header = inspect.getdoc(op).split("\n", 1)[0]
+def _generated_docstring(declaration: OpDeclaration, binding: MeshArguments, op: Callable) -> str:
+    doc = inspect.getdoc(op)
+    if doc is None:
+        raise AssertionError(f"geomjax.{declaration.name} has no docstring to summarise in Mesh.{declaration.mesh_method}")
+    header = doc.split("\n", 1)[0]
     bound = ", ".join(f"``{name}`` = {_SOURCE_DESCRIPTIONS[source]}" for name, source in binding.bound.items())
     lines = [header, "", f"Calls :func:`geomjax.{declaration.name}` with {bound}."]
     if binding.current_points is not None:
@@ -465,11 +482,13 @@ def _remesh_signature() -> inspect.Signature:
     return inspect.signature(Mesh.remesh).replace(parameters=own + options)
 
 
-Mesh.remesh.__signature__ = _remesh_signature()
+_with_signature(Mesh.remesh, _remesh_signature())
 
 for _declaration in REGISTRY.values():
     if _declaration.mesh_arguments is not None:
-        setattr(Mesh, _declaration.mesh_method, _generated_method(_declaration))
+        if _declaration.mesh_method is None:
+            raise AssertionError(f"{_declaration.name} declares mesh_arguments without a mesh_method to generate")
+        setattr(Mesh, _declaration.mesh_method, _generated_method(_declaration, _declaration.mesh_arguments, _declaration.mesh_method))
     elif _declaration.mesh_method is not None and not hasattr(Mesh, _declaration.mesh_method):
         raise AssertionError(f"Mesh.{_declaration.mesh_method} (for {_declaration.name}) is neither generated nor written")
 
@@ -534,7 +553,7 @@ def _check_data(name: str, data, num_rows: int, row_name: str) -> dict:
         return {}
     if not isinstance(data, Mapping):
         raise TypeError(f"{name} must be a mapping from names to arrays, got {type(data).__name__}")
-    checked = {}
+    checked: dict[Any, jax.Array | dict] = {}
     for key, value in data.items():
         if isinstance(value, Mapping):
             checked[key] = _check_data(f"{name}[{key!r}]", value, num_rows, row_name)

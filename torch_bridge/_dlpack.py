@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.utils.dlpack
 
-_TORCH_FROM_NUMPY = {
+_TORCH_FROM_NUMPY: dict[np.dtype, torch.dtype] = {
     np.dtype(np.float16): torch.float16,
     np.dtype(np.float32): torch.float32,
     np.dtype(np.float64): torch.float64,
@@ -101,6 +101,10 @@ SMALL_CPU_BYTES = 16 * 2**10
 _FIRST_SIGHTINGS = 1024  # bound on the remembered first sightings (cleared when full)
 
 
+# What a kept view was made from: the tensor's memory, shape, strides and dtype.
+_Layout = tuple[int, torch.Size, tuple[int, ...], torch.dtype]
+
+
 class _CpuViews:
     """Zero-copy JAX views of CPU tensors, kept while the tensor lives.
 
@@ -114,9 +118,9 @@ class _CpuViews:
     for a view and its weak reference.
     """
 
-    def __init__(self):
-        self._views = {}
-        self._seen = {}  # id -> signature of small tensors passed once (a hint, not a reference)
+    def __init__(self) -> None:
+        self._views: dict[int, tuple[weakref.ref[torch.Tensor], _Layout, jax.Array]] = {}
+        self._seen: dict[int, _Layout] = {}  # id -> signature of small tensors passed once (a hint, not a reference)
 
     def __call__(self, t: torch.Tensor, *, numpy_first: bool = False):
         key = id(t)
@@ -138,7 +142,7 @@ class _CpuViews:
         array = _import_cpu(t.detach())
         if array.unsafe_buffer_pointer() == t.data_ptr():
             views = self._views
-            ref = weakref.ref(t, lambda _, key=key: views.pop(key, None))
+            ref = weakref.ref(t, lambda _: views.pop(key, None))
             views[key] = (ref, signature, array)
         return array
 

@@ -119,7 +119,8 @@ def _linearize(fn, slots, kinds, statics, wrt) -> _Linearization:
     known = {id(x): ("input", i) for i, x in enumerate(leaves) if x is not None}
     for i, x in enumerate(outputs):
         known.setdefault(id(x), ("output", i))
-    sources, residuals = [], []
+    sources: list[tuple[str, int]] = []
+    residuals: list[jax.Array] = []
     for leaf in pb_leaves:
         source = known.get(id(leaf))
         if source is None:
@@ -544,7 +545,7 @@ class LiftedFunction:
         return outputs[0] if self.num_outputs == 1 else tuple(outputs)
 
     def leaf_names(self, slots) -> list:
-        names = []
+        names: list[str] = []
         for name, value, kind in zip(self.slot_names, slots, self.kinds):
             if kind == TENSOR_LIST:
                 names.extend(f"{name}[{i}]" for i in range(len(value)))

@@ -18,7 +18,8 @@ import inspect
 import numbers
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from types import MappingProxyType
+from types import FunctionType, MappingProxyType
+from typing import Any, Protocol, cast
 
 import jax
 import numpy as np
@@ -135,14 +136,29 @@ class _Declared:
 def _parse_signature(signature: str) -> _Declared:
     """Read a signature written out, e.g. ``"f(points: Tensor, *, scale: float = 2.0) -> Tensor"``."""
     tree = ast.parse(f"def {signature}: pass").body[0]
+    assert isinstance(tree, ast.FunctionDef)  # the source starts with "def"
     positional, keyword_only = tree.args.args, tree.args.kwonlyargs
     defaults = [None] * (len(positional) - len(tree.args.defaults)) + list(tree.args.defaults)
     defaults += list(tree.args.kw_defaults)
     parameters = tuple(
-        (arg.arg, ast.unparse(arg.annotation), i >= len(positional), _REQUIRED if d is None else ast.literal_eval(d))
+        (arg.arg, _annotation_source(tree.name, f"parameter {arg.arg}", arg.annotation), i >= len(positional), _REQUIRED if d is None else ast.literal_eval(d))
         for i, (arg, d) in enumerate(zip([*positional, *keyword_only], defaults))
     )
-    return _Declared(tree.name, parameters, ast.unparse(tree.returns))
+    return _Declared(tree.name, parameters, _annotation_source(tree.name, "the return", tree.returns))
+
+
+def _annotation_source(function_name: str, what: str, node: ast.expr | None) -> str:
+    # Every annotation is needed: it decides the schema type of the slot.
+    if node is None:
+        raise ValueError(f"{function_name}: {what} has no annotation")
+    return ast.unparse(node)
+
+
+def _tuple_length(node: ast.expr) -> int:
+    """The number of elements of a ``tuple[...]`` annotation (``tuple[X]`` has one)."""
+    if not isinstance(node, ast.Subscript):
+        raise ValueError(f"not a tuple annotation: {ast.unparse(node)!r}")
+    return len(node.slice.elts) if isinstance(node.slice, ast.Tuple) else 1
 
 
 def _is_array_annotation(node: ast.expr, namespace: dict) -> bool:
@@ -196,7 +212,7 @@ def _derive_signature(function, *, rename, annotations, exclude, returns) -> _De
         annotation = inspect.signature(function).return_annotation
         tree = ast.parse(str(annotation), mode="eval").body
         if isinstance(tree, ast.Subscript) and isinstance(tree.value, ast.Name) and tree.value.id == "tuple":
-            returns = f"tuple[{', '.join(['Tensor'] * len(tree.slice.elts))}]"
+            returns = f"tuple[{', '.join(['Tensor'] * _tuple_length(tree))}]"
         else:
             returns = "Tensor" if _is_array_annotation(tree, namespace) else str(annotation)
     return _Declared(function.__name__, tuple(parameters), returns)
@@ -213,7 +229,8 @@ class BridgedOp:
             ``bool``, ``str``, ``Literal[...]`` and ``Sequence[float | int]``, joined with ``|``;
             the return is ``Tensor`` or ``tuple[Tensor, ...]``. geomjax's annotations are read in
             that vocabulary (every JAX array form is ``Tensor``).
-        function: the function to call with the parameters by name (default: ``signature``).
+        function: the function to call with the parameters by name (default: ``signature``;
+            required when ``signature`` is written out).
         annotations: reference annotations where geomjax's own would give another schema (e.g.
             ``grid_dims: Sequence[int]``, whose integer-tensor form is read on the host).
         rename: parameter names that differ from geomjax's (``{"geomjax_name": "name"}``).
@@ -237,24 +254,34 @@ class BridgedOp:
         nondifferentiable: Sequence[str] = (),
         dynamic_outputs: Callable[[dict], list] | None = None,
     ):
+        self.function: Callable
         if isinstance(signature, str):
             declared = _parse_signature(signature)
+            if function is None:
+                raise TypeError(f"{declared.name}: a signature written out needs the function to call")
+            self.function = function
         else:
             declared = _derive_signature(signature, rename=rename, annotations=annotations, exclude=exclude, returns=returns)
+            self.function = signature if function is None else function
         self.name = declared.name
-        self.function = signature if function is None else function
         if declared.returns == "Tensor":
             self.num_outputs, self.single_output = 1, True
         elif declared.returns.startswith("tuple["):
-            self.num_outputs = len(ast.parse(declared.returns, mode="eval").body.slice.elts)
+            self.num_outputs = _tuple_length(ast.parse(declared.returns, mode="eval").body)
             self.single_output = False
         else:
             raise ValueError(f"{self.name}: unsupported return annotation {declared.returns!r}")
 
-        slots, statics, params = [], [], []
+        # (name, schema type) of each tensor slot and each static slot.
+        slots: list[tuple[str, str]] = []
+        statics: list[tuple[str, str]] = []
+        params: list[Parameter] = []
         for name, annotation, keyword_only, default in declared.parameters:
             has_tensor, static_type, optional, sequence_type = _parse_annotation(name, annotation)
-            tensor_slot = static_slot = sequence_slot = None
+            tensor_slot: int | None = None
+            static_slot: int | None = None
+            sequence_slot: int | None = None
+            schema_type: str | None = None
             if has_tensor:
                 tensor_slot = len(slots)
                 slots.append((name, OPTIONAL_TENSOR if (optional or static_type) else TENSOR))
@@ -272,7 +299,7 @@ class BridgedOp:
                     default=default,
                     tensor_slot=tensor_slot,
                     static_slot=static_slot,
-                    static_type=statics[static_slot][1] if static_type else None,
+                    static_type=schema_type,
                     optional=optional,
                     sequence_slot=sequence_slot,
                 )
@@ -282,7 +309,7 @@ class BridgedOp:
         if unknown:
             raise ValueError(f"{self.name}: nondifferentiable names unknown tensor parameters {sorted(unknown)}")
         self._num_slots, self._num_statics = len(slots), len(statics)
-        self._normalizers = tuple(_static_normalizer(p.static_type) if p.static_slot is not None else None for p in params)
+        self._normalizers = tuple(_static_normalizer(p.static_type) if p.static_type is not None else None for p in params)
         self._sequence_normalizers = tuple(_static_normalizer(statics[p.sequence_slot][1]) if p.sequence_slot is not None else None for p in params)
         self.lifted = LiftedFunction(
             self.name,
@@ -339,6 +366,7 @@ class BridgedOp:
         quotes this message).
         """
         value = values[self.parameters.index(parameter)]
+        assert parameter.static_type is not None  # bind() calls this for parameters with a static slot only
         base = parameter.static_type.rstrip("?")
         expected = _OPTION_WORDS.get(base, base)
         if parameter.sequence_slot is not None:
@@ -363,9 +391,28 @@ class BridgedOp:
         return outputs[0] if self.single_output else tuple(outputs)
 
 
-def make_public_function(op: BridgedOp) -> Callable:
+class PublicFunction(Protocol):
+    """A user-facing function, with the table entry it fronts as ``bridged_op``."""
+
+    bridged_op: BridgedOp
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any: ...
+
+
+def with_bridged_op(function: Callable[..., Any], op: BridgedOp) -> PublicFunction:
+    """``function`` with ``function.bridged_op = op``."""
+    # Function objects take new attributes at run time, which their static type does not list;
+    # the Protocol declares the one added here.
+    public = cast(PublicFunction, function)
+    public.bridged_op = op
+    return public
+
+
+def make_public_function(op: BridgedOp) -> PublicFunction:
     """The user-facing function: the reference's name, parameters, defaults and ``*`` marker."""
-    parts, names, namespace = [], [], {"_call": op.__call__}
+    parts: list[str] = []
+    names: list[str] = []
+    namespace: dict[str, Any] = {"_call": op.__call__}  # the globals of the generated source
     star_written = False
     for p in op.parameters:
         if p.keyword_only and not star_written:
@@ -379,12 +426,11 @@ def make_public_function(op: BridgedOp) -> Callable:
         names.append(p.name)
     source = f"def {op.name}({', '.join(parts)}):\n    return _call({', '.join(names)})\n"
     exec(compile(source, f"<torch_bridge.{op.name}>", "exec"), namespace)
-    function = namespace[op.name]
+    function: FunctionType = namespace[op.name]
     function.__module__ = "torch_bridge"
     function.__qualname__ = op.name
     function.__doc__ = public_docstring(op)
-    function.bridged_op = op
-    return function
+    return with_bridged_op(function, op)
 
 
 def public_docstring(op: BridgedOp) -> str:

@@ -21,7 +21,7 @@ rounding.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -34,17 +34,19 @@ wp.set_module_options({"enable_backward": False})
 _NO_VERTEX = wp.constant(2147483647)  # sorts after every real index
 
 # The energy kernels' argument types (float types resolved per overload).
-Coordinates = wp.array(dtype=Any)  # (B*N,) 3-vectors: points, reference points, their cotangents
-PerItem = wp.array(dtype=Any)  # (B*M,) one value per primitive (cell, face, hinge) and design
-Topology = wp.array2d(dtype=wp.int32)  # (M, K) vertex indices
+Coordinates: Any = wp.array(dtype=Any)  # (B*N,) 3-vectors: points, reference points, their cotangents
+PerItem: Any = wp.array(dtype=Any)  # (B*M,) one value per primitive (cell, face, hinge) and design
+Topology: Any = wp.array2d(dtype=wp.int32)  # (M, K) vertex indices
 
 
 @wp.func
+@no_type_check
 def _ordered(a: wp.int32, b: wp.int32):
     return wp.min(a, b), wp.max(a, b)
 
 
 @wp.func
+@no_type_check
 def sorted_cell(cells: wp.array2d(dtype=wp.int32), c: int, num_points: int):
     """Vertex indices of cell ``c`` sorted ascending (missing slots last) and whether all are in range."""
     num_vertices = cells.shape[1]
@@ -66,6 +68,7 @@ def sorted_cell(cells: wp.array2d(dtype=wp.int32), c: int, num_points: int):
 
 
 @wp.func
+@no_type_check
 def cell_edges(points: wp.array(dtype=Any), base: int, v: wp.vec4i, m: int):
     """Consecutive edges ``x_{k+1} - x_k`` of a sorted cell (unused edges are zero)."""
     x0 = points[base + v[0]]
@@ -82,6 +85,7 @@ def cell_edges(points: wp.array(dtype=Any), base: int, v: wp.vec4i, m: int):
 
 
 @wp.func
+@no_type_check
 def finite(x: Any):
     """``wp.isfinite`` for a scalar: ``x * 0`` is zero for finite ``x`` and NaN otherwise.
 
@@ -93,6 +97,7 @@ def finite(x: Any):
 
 
 @wp.func
+@no_type_check
 def finite3(a: Any, b: Any, c: Any):
     """Whether every component of three vectors is finite (see :func:`finite`)."""
     zero = type(a[0])(0.0)
@@ -101,6 +106,7 @@ def finite3(a: Any, b: Any, c: Any):
 
 
 @wp.func
+@no_type_check
 def load_cell(points: Coordinates, reference: Coordinates, cells: Topology, b: int, c: int, num_points: int):
     """Cell ``c`` of design ``b``: sorted vertices, current and reference edges, and whether all
     its indices are in range and its coordinates finite (edges are zero when not in range)."""
@@ -123,6 +129,7 @@ def load_cell(points: Coordinates, reference: Coordinates, cells: Topology, b: i
 
 
 @wp.func
+@no_type_check
 def unit_or_same(v: Any, norm: Any):
     """``v / |v|``; a zero-length ``v`` is returned unchanged (the JAX path divides by one)."""
     if norm > type(norm)(0.0):
@@ -132,6 +139,7 @@ def unit_or_same(v: Any, norm: Any):
 
 
 @wp.func
+@no_type_check
 def gram_schmidt(e0: Any, e1: Any, e2: Any, m: int):
     """Modified Gram-Schmidt of the first ``m`` edges: ``(q0, q1, q2, r00, r01, r02, r11, r12, r22)``.
 
@@ -165,6 +173,7 @@ def gram_schmidt(e0: Any, e1: Any, e2: Any, m: int):
 
 
 @wp.func
+@no_type_check
 def factorial(m: int, like: Any):
     """``m!`` for ``m <= 3`` in the scalar type of ``like``."""
     if m == 3:
@@ -175,6 +184,7 @@ def factorial(m: int, like: Any):
 
 
 @wp.func
+@no_type_check
 def scatter_edge_gradients(grad: wp.array(dtype=Any), base: int, v: wp.vec4i, m: int, g0: Any, g1: Any, g2: Any):
     """Add the gradient of consecutive edges ``g_k`` to the cell's vertices (unused ``g`` are zero)."""
     wp.atomic_sub(grad, base + v[0], g0)

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import contextlib
+from typing import no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +35,7 @@ FLOAT32_MAX = wp.constant(3.4028234663852886e38)
 
 
 @wp.kernel
+@no_type_check
 def _counting_sort_kernel(
     keys: wp.array(dtype=wp.int32), num_items: wp.int32, num_keys: wp.int32, offsets: wp.array(dtype=wp.int32),
     order: wp.array(dtype=wp.int32), cursor: wp.array(dtype=wp.int32),
@@ -83,6 +85,7 @@ def counting_sort(keys: jax.Array, num_keys: int) -> tuple[jax.Array, jax.Array]
 
 
 @wp.func
+@no_type_check
 def _spread_bits(x: wp.int32):
     """The 10 low bits of ``x`` moved to every third bit (for a 30-bit Morton code)."""
     v = wp.uint32(x) & wp.uint32(0x3FF)
@@ -94,11 +97,13 @@ def _spread_bits(x: wp.int32):
 
 
 @wp.func
+@no_type_check
 def _cell(x: float, low: float, scale: float):
     return wp.int32(wp.clamp((x - low) * scale, 0.0, 1023.0))
 
 
 @wp.kernel
+@no_type_check
 def _morton_kernel(
     points: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.float32), offset: wp.int32, keys_out: wp.array(dtype=wp.int32),
     order_out: wp.array(dtype=wp.int32),
@@ -117,6 +122,7 @@ def _morton_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _box_kernel(points: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.float32)):
     """One thread: the Morton box (low corner, 1023 / largest side) of finite ``points``."""
     low = wp.vec3(FLOAT32_MAX, FLOAT32_MAX, FLOAT32_MAX)
@@ -137,6 +143,7 @@ def _box_kernel(points: wp.array(dtype=wp.vec3), box: wp.array(dtype=wp.float32)
 
 
 @wp.kernel
+@no_type_check
 def _identity_kernel(offset: wp.int32, order_out: wp.array(dtype=wp.int32)):
     _, t = wp.tid()
     order_out[t + offset] = t + offset
@@ -173,6 +180,7 @@ def query_order(points32, keys, order) -> None:
 
 
 @wp.func
+@no_type_check
 def mesh_id(words: wp.array(dtype=wp.uint32)):
     """The ``uint64`` mesh id stored as (low, high) uint32 words (the JAX handle format)."""
     return wp.uint64(words[0]) | (wp.uint64(words[1]) << wp.uint64(32))
@@ -205,6 +213,7 @@ def mesh_in_call(vertices32: wp.array, faces_flat: wp.array, *, winding_number: 
     launch that reads the mesh is still running.
     """
     device = vertices32.device
+    assert device is not None  # only annotation arrays (no data) have no device
     mesh = build_mesh(vertices32, faces_flat, winding_number=winding_number, device=device)
     try:
         yield mesh, mesh_words(mesh)

@@ -32,6 +32,8 @@ index.
 
 from __future__ import annotations
 
+from typing import no_type_check
+
 import numpy as np
 
 from ._grid import FLOAT32_MAX, morton_order
@@ -48,10 +50,10 @@ TREE_ARRAYS = ("nodes", "leaf_starts", "faces", "corners")
 
 @wp.struct
 class Tree:
-    nodes: wp.array(dtype=wp.mat44)
-    leaf_starts: wp.array(dtype=wp.int32)
-    faces: wp.array(dtype=wp.int32)
-    corners: wp.array(dtype=wp.vec3)
+    nodes: wp.array[wp.mat44]
+    leaf_starts: wp.array[wp.int32]
+    faces: wp.array[wp.int32]
+    corners: wp.array[wp.vec3]
     first_leaf: wp.int32
 
 
@@ -75,6 +77,7 @@ def tree_shapes(num_faces: int) -> dict:
 
 
 @wp.func
+@no_type_check
 def node_distance_sq(tree: Tree, node: int, p: wp.vec3):
     """Squared distance from ``p`` to the box of ``node`` (a lower bound for its faces)."""
     box = tree.nodes[node]
@@ -85,6 +88,7 @@ def node_distance_sq(tree: Tree, node: int, p: wp.vec3):
 
 
 @wp.func
+@no_type_check
 def next_after(node: int):
     """The node after ``node``'s subtree in depth-first order, 0 once the whole tree is done."""
     n = node
@@ -96,6 +100,7 @@ def next_after(node: int):
 
 
 @wp.func
+@no_type_check
 def leaf_within(tree: Tree, p: wp.vec3, radius_sq: float, node: int):
     """First leaf at or after ``node`` (depth-first) whose box is within ``sqrt(radius_sq)`` of ``p``, else 0.
 
@@ -114,6 +119,7 @@ def leaf_within(tree: Tree, p: wp.vec3, radius_sq: float, node: int):
 
 
 @wp.func
+@no_type_check
 def next_face_within(tree: Tree, p: wp.vec3, radius_sq: float, leaf: int, s: int):
     """The sorted face after ``s`` in the leaves within ``sqrt(radius_sq)`` of ``p``, as ``(leaf, s)``.
 
@@ -137,6 +143,7 @@ def next_face_within(tree: Tree, p: wp.vec3, radius_sq: float, leaf: int, s: int
 
 
 @wp.kernel
+@no_type_check
 def _centroid_kernel(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), offset: wp.int32, centroids: wp.array(dtype=wp.vec3)):
     _, t = wp.tid()
     f = t + offset
@@ -144,6 +151,7 @@ def _centroid_kernel(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=
 
 
 @wp.kernel
+@no_type_check
 def _gather_kernel(
     vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), sorted_faces: wp.array(dtype=wp.int32), offset: wp.int32,
     faces: wp.array(dtype=wp.int32), corners: wp.array(dtype=wp.vec3),
@@ -157,11 +165,13 @@ def _gather_kernel(
 
 
 @wp.func
+@no_type_check
 def _volume(size: wp.vec3):
     return size[0] * size[1] * size[2]
 
 
 @wp.func
+@no_type_check
 def _normal_frame(normal: wp.vec3):
     """Rows: two unit tangents and the unit ``normal`` (the first tangent is the least-aligned axis, projected)."""
     axis = wp.vec3(1.0, 0.0, 0.0)
@@ -174,6 +184,7 @@ def _normal_frame(normal: wp.vec3):
 
 
 @wp.kernel
+@no_type_check
 def _node_kernel(
     corners: wp.array(dtype=wp.vec3), num_faces: wp.int64, levels: wp.int32, offset: wp.int32, nodes: wp.array(dtype=wp.mat44),
     leaf_starts: wp.array(dtype=wp.int32),

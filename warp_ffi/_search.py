@@ -8,7 +8,7 @@ exactly in the working dtype.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -23,12 +23,14 @@ PAD = wp.constant(2.0**-16)  # relative margin of every float32 search radius
 
 
 @wp.func
+@no_type_check
 def max_abs(v: Any):
     """The largest magnitude of a 3-vector's components."""
     return wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2]))
 
 
 @wp.func
+@no_type_check
 def padded_radius(radius: Any, magnitude: Any):
     """``radius`` widened by the pad and rounded to a float32 that cannot be too small."""
     widened = radius + type(radius)(PAD) * (magnitude + radius)
@@ -38,6 +40,7 @@ def padded_radius(radius: Any, magnitude: Any):
 
 
 @wp.func
+@no_type_check
 def unit_scaled(v: Any):
     """``v / |v|`` computed on ``v / max |v_i|`` (no underflow); zero for a zero vector."""
     size = max_abs(v)
@@ -48,6 +51,7 @@ def unit_scaled(v: Any):
 
 
 @wp.func
+@no_type_check
 def face_corners(faces: wp.array(dtype=wp.vec3i), vertices: wp.array(dtype=Any), face: int):
     """The three corners of ``face``."""
     tri = faces[face]

@@ -24,15 +24,15 @@ import os
 import re
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import warp
 
-# Warp 1.19 ignores ``config.quiet``: the log level keeps the init banner and module-load
+# Warp 1.19 has no ``config.quiet``: the log level keeps the init banner and module-load
 # messages off stdout (they would break doctests and pollute benchmark output).
-warp.config.quiet = True
 warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
 warp.init()
 
@@ -180,7 +180,7 @@ def _ffi_function(name: str, arg_types: dict, body: Callable, module: str) -> Ca
     name = re.sub(r"\W", "_", name)
     parameters = ", ".join(f"{arg}: _types[{arg!r}]" for arg in arg_types)
     source = f"def {name}({parameters}) -> None:\n    _body({', '.join(arg_types)})\n"
-    namespace = {"__name__": module, "_types": dict(arg_types), "_body": body}
+    namespace: dict[str, Any] = {"__name__": module, "_types": dict(arg_types), "_body": body}
     exec(compile(source, f"<warp_ffi FFI function {name}>", "exec", dont_inherit=True), namespace)  # noqa: S102
     return namespace[name]
 

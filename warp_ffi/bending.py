@@ -19,7 +19,7 @@ coordinates ``alpha_k = a.e / |e|^2``, ``alpha_l = (b + e).e / |e|^2`` of the op
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 
@@ -35,6 +35,7 @@ __all__ = ["surface_bending_terms"]
 
 
 @wp.func
+@no_type_check
 def _hinge_vectors(points: wp.array(dtype=Any), base: int, i: int, j: int, k: int, l: int):
     """``(e, a, b)`` of a hinge divided by their largest magnitude ``s``, and ``s`` (one if zero)."""
     xi = points[base + i]
@@ -49,6 +50,7 @@ def _hinge_vectors(points: wp.array(dtype=Any), base: int, i: int, j: int, k: in
 
 
 @wp.func
+@no_type_check
 def _dihedral(e: Any, n_left: Any, n_right: Any):
     e_hat = e / wp.length(e)
     left = n_left / wp.length(n_left)
@@ -57,6 +59,7 @@ def _dihedral(e: Any, n_left: Any, n_right: Any):
 
 
 @wp.func
+@no_type_check
 def _state(points: wp.array(dtype=Any), reference: wp.array(dtype=Any), hinges: wp.array2d(dtype=wp.int32), b: int, h: int, num_points: int):
     """Scaled hinge vectors and normals (current, reference) and whether the hinge is valid."""
     i = hinges[h, 0]
@@ -84,17 +87,20 @@ def _state(points: wp.array(dtype=Any), reference: wp.array(dtype=Any), hinges: 
 
 
 @wp.func
+@no_type_check
 def _wrapped_difference(theta: Any, theta0: Any):
     delta = theta - theta0
     return wp.atan2(wp.sin(delta), wp.cos(delta))
 
 
 @wp.func
+@no_type_check
 def _stiffness(e0: Any, n0_left: Any, n0_right: Any):
     return type(e0[0])(2.0) * wp.dot(e0, e0) / (wp.length(n0_left) + wp.length(n0_right))
 
 
 @wp.func
+@no_type_check
 def _dihedral_gradient(e: Any, a: Any, c: Any, n_left: Any, n_right: Any):
     """``dtheta / dx`` for the four hinge vertices, in scaled units."""
     edge_sq = wp.dot(e, e)
@@ -110,6 +116,7 @@ def _dihedral_gradient(e: Any, a: Any, c: Any, n_left: Any, n_right: Any):
 
 
 @wp.kernel
+@no_type_check
 def _forward_kernel(
     points: Coordinates, reference: Coordinates, hinges: Topology, num_points: int, offset: int, energy: PerItem,
 ):  # fmt: skip
@@ -125,6 +132,7 @@ def _forward_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _adjoint_kernel(
     points: Coordinates, reference: Coordinates, hinges: Topology, energy_bar: PerItem, num_points: int, offset: int,
     points_bar: Coordinates, reference_bar: Coordinates,

@@ -26,7 +26,7 @@ Morton order (a Warp radix sort of their keys), which keeps tree nodes in cache 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax.numpy as jnp
 
@@ -50,6 +50,7 @@ CPU_SEARCH_BATCH = 32
 
 
 @wp.func
+@no_type_check
 def closest_point_on_triangle(p: Any, a: Any, b: Any, c: Any):
     """Closest point to ``p`` on triangle ``abc``: the rule of geomjax's JAX projection.
 
@@ -97,6 +98,7 @@ def closest_point_on_triangle(p: Any, a: Any, b: Any, c: Any):
 
 
 @wp.func
+@no_type_check
 def triangle_distance_sq(p: Any, a: Any, b: Any, c: Any):
     """Squared distance from ``p`` to triangle ``abc``."""
     offset = p - closest_point_on_triangle(p, a, b, c)
@@ -104,6 +106,7 @@ def triangle_distance_sq(p: Any, a: Any, b: Any, c: Any):
 
 
 @wp.func
+@no_type_check
 def is_sliver(a: Any, b: Any, c: Any):
     """Warp's sliver rule (its closest-point queries skip these faces)."""
     ab = b - a
@@ -114,6 +117,7 @@ def is_sliver(a: Any, b: Any, c: Any):
 
 
 @wp.func
+@no_type_check
 def _start_query(order: wp.array(dtype=wp.int32), points: wp.array(dtype=wp.vec3), params: wp.array(dtype=wp.float32),
                  faces_out: wp.array(dtype=wp.int32), sign_out: wp.array(dtype=wp.float32), t: int):  # fmt: skip
     """Query ``order[t]``: its index, float32 position and padded search radius, and whether it is
@@ -126,6 +130,7 @@ def _start_query(order: wp.array(dtype=wp.int32), points: wp.array(dtype=wp.vec3
 
 
 @wp.kernel
+@no_type_check
 def _winding_search_kernel(
     mesh_words: wp.array(dtype=wp.uint32), points: wp.array(dtype=wp.vec3), params: wp.array(dtype=wp.float32),
     order: wp.array(dtype=wp.int32), offset: wp.int32, faces_out: wp.array(dtype=wp.int32), sign_out: wp.array(dtype=wp.float32),
@@ -142,6 +147,7 @@ def _winding_search_kernel(
 
 
 @wp.func
+@no_type_check
 def _sorted_distance_sq(tree: Tree, s: int, p: wp.vec3):
     """Squared float32 distance from ``p`` to the tree's sorted face ``s``."""
     return triangle_distance_sq(p, tree.corners[3 * s], tree.corners[3 * s + 1], tree.corners[3 * s + 2])
@@ -153,6 +159,7 @@ _BoundStack = wp.types.vector(length=32, dtype=wp.float32)
 
 
 @wp.kernel
+@no_type_check
 def _nearest_kernel(
     tree: Tree, points: wp.array(dtype=wp.vec3), params: wp.array(dtype=wp.float32), skip_slivers: wp.int32, batch_size: wp.int32,
     order: wp.array(dtype=wp.int32), offset: wp.int32, faces_out: wp.array(dtype=wp.int32), sign_out: wp.array(dtype=wp.float32),
@@ -224,6 +231,7 @@ def _nearest_kernel(
 
 
 @wp.func
+@no_type_check
 def _query_face(
     order: wp.array(dtype=wp.int32), chosen: wp.array(dtype=wp.int32), points: wp.array(dtype=Any), faces: wp.array(dtype=wp.vec3i),
     vertices: wp.array(dtype=Any), t: int,
@@ -241,6 +249,7 @@ def _query_face(
 
 
 @wp.kernel
+@no_type_check
 def _refine_kernel(
     tree: Tree, points32: wp.array(dtype=wp.vec3), points: wp.array(dtype=Any), vertices: wp.array(dtype=Any),
     faces: wp.array(dtype=wp.vec3i), params: wp.array(dtype=Any), skip_slivers: wp.int32, order: wp.array(dtype=wp.int32),
@@ -270,6 +279,7 @@ def _refine_kernel(
 
 
 @wp.func
+@no_type_check
 def _feature_weight(q: Any, a: Any, b: Any, c: Any, eps: Any):
     """Warp's weights: the angle at a vertex ``q`` sits on (within ``eps``), pi on an edge, else 2 pi."""
     e0 = b - a
@@ -299,6 +309,7 @@ def _feature_weight(q: Any, a: Any, b: Any, c: Any, eps: Any):
 
 
 @wp.kernel
+@no_type_check
 def _normal_sign_kernel(
     tree: Tree, points: wp.array(dtype=Any), vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.vec3i),
     params: wp.array(dtype=Any), faces_in: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32), offset: wp.int32,
@@ -337,6 +348,7 @@ def _normal_sign_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _measure_kernel(
     points: wp.array(dtype=Any), vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.vec3i), faces_in: wp.array(dtype=wp.int32),
     order: wp.array(dtype=wp.int32), offset: wp.int32, distance_out: wp.array(dtype=Any), closest_out: wp.array(dtype=Any),
@@ -367,7 +379,8 @@ _measure = Overloads(_measure_kernel, lambda s: {"points": vectors(s), "vertices
 
 
 def _point_types(scalar, sign_mode: int, exact: bool, measure: bool, build: bool) -> dict:
-    vec3f, ints = wp.array(dtype=wp.vec3), wp.array(dtype=wp.int32)
+    vec3f: wp.array = wp.array(dtype=wp.vec3)
+    ints: wp.array = wp.array(dtype=wp.int32)
     if build:
         head = {"vertices32": vec3f, "faces_flat": ints}
     else:

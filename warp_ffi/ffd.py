@@ -13,7 +13,7 @@ adjoint written per point.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -29,11 +29,12 @@ BASIS_CODES = {"bernstein": 0, "bspline": 1, "linear": 2, "cubic_hermite": 3, "q
 _TABLE = wp.constant(MAX_AXIS_NODES)
 
 # The kernels' argument types (float types resolved per overload).
-Batched = wp.array3d(dtype=Any)  # (B, N, D) points and fields, (B, nodes, D) lattices
-PerDesign = wp.array2d(dtype=Any)  # (B, D) box corners and edge lengths
+Batched: Any = wp.array3d(dtype=Any)  # (B, N, D) points and fields, (B, nodes, D) lattices
+PerDesign: Any = wp.array2d(dtype=Any)  # (B, D) box corners and edge lengths
 
 
 @wp.func
+@no_type_check
 def _axis_basis(kind: int, n: int, u: Any, table: Any):
     """Supporting nodes on one axis at local coordinate ``u`` in ``[0, 1]``.
 
@@ -103,6 +104,7 @@ def _axis_basis(kind: int, n: int, u: Any, table: Any):
 
 
 @wp.func
+@no_type_check
 def _point_tables(
     points: wp.array3d(dtype=Any), origin: wp.array2d(dtype=Any), extent: wp.array2d(dtype=Any), kind: int, n0: int, n1: int,
     n2: int, b: int, q: int,
@@ -143,6 +145,7 @@ def _point_tables(
 
 
 @wp.func
+@no_type_check
 def _row_vector(values: wp.array3d(dtype=Any), b: int, i: int, num_dims: int):
     """Row ``values[b, i]`` as a 3-vector (missing components zero)."""
     v = wp.vector(length=3, dtype=values.dtype)
@@ -152,6 +155,7 @@ def _row_vector(values: wp.array3d(dtype=Any), b: int, i: int, num_dims: int):
 
 
 @wp.kernel
+@no_type_check
 def _ffd_kernel(
     points: Batched, values: Batched, origin: PerDesign, extent: PerDesign, kind: int, n0: int, n1: int, n2: int, transpose: int,
     out: Batched,
@@ -188,6 +192,7 @@ def _ffd_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _ffd_point_adjoint_kernel(
     points: Batched, lattice: Batched, origin: PerDesign, extent: PerDesign, field_adj: Batched, kind: int, n0: int, n1: int,
     n2: int, points_adj: Batched,
@@ -227,8 +232,8 @@ _point_adjoint = KernelFamily(_ffd_point_adjoint_kernel, _types, outputs=("point
 
 def _static(lattice_shape: tuple[int, ...], basis: str) -> tuple[int, int, int, int]:
     """Static kernel scalars ``(kind, n0, n1, n2)``; missing axes have one node."""
-    resolution = tuple(lattice_shape[1:-1]) + (1,) * (4 - len(lattice_shape[1:]))
-    return (BASIS_CODES[basis],) + resolution
+    n0, n1, n2 = tuple(lattice_shape[1:-1]) + (1,) * (4 - len(lattice_shape[1:]))
+    return BASIS_CODES[basis], n0, n1, n2
 
 
 def _flat(lattice: jax.Array) -> jax.Array:

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import functools
 import threading
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import numpy as np
@@ -74,7 +74,9 @@ def mesh_handle(mesh: wp.Mesh) -> jax.Array:
     still uses it is never freed too early.
     """
     words = mesh_words(mesh)
-    words.geomjax_mesh = mesh  # the reference that ties the mesh's lifetime to the JAX buffer
+    # The reference that ties the mesh's lifetime to the JAX buffer: an ad-hoc attribute, which
+    # Warp arrays accept at runtime but their type does not declare.
+    words.geomjax_mesh = mesh  # type: ignore[attr-defined]
     handle = jax.dlpack.from_dlpack(words)
     if handle.unsafe_buffer_pointer() != words.ptr:  # pragma: no cover - JAX copied: no keep-alive
         raise RuntimeError("could not share the Warp mesh handle with JAX without a copy")
@@ -133,6 +135,7 @@ def hash_grid(points: wp.array, cell_width: float, dims: tuple[int, int, int]) -
 
 
 @wp.kernel
+@no_type_check
 def _reject_kernel(
     grid: wp.uint64, accepted: wp.array(dtype=wp.vec3), candidates: wp.array(dtype=wp.vec3), radius: wp.array(dtype=wp.float32),
     order: wp.array(dtype=wp.int32), widening: wp.float32, offset: wp.int32, alive: wp.array(dtype=wp.int32),
@@ -154,6 +157,7 @@ def _reject_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _conflict_kernel(
     grid: wp.uint64, candidates: wp.array(dtype=wp.vec3), radius: wp.array(dtype=wp.float32), priority: wp.array(dtype=wp.uint32),
     index: wp.array(dtype=wp.int32), widening: wp.float32, offset: wp.int32, keep: wp.array(dtype=wp.int32),
@@ -188,11 +192,11 @@ def reject_near_accepted(
     num = candidates.shape[0]
     if accepted.shape[0] == 0:
         return np.ones(num, bool)
-    accepted_wp = wp.array(accepted, dtype=wp.vec3, device=device)
-    candidates_wp = wp.array(candidates, dtype=wp.vec3, device=device)
-    radius_wp = wp.array(radius, dtype=wp.float32, device=device)
+    accepted_wp: wp.array = wp.array(accepted, dtype=wp.vec3, device=device)
+    candidates_wp: wp.array = wp.array(candidates, dtype=wp.vec3, device=device)
+    radius_wp: wp.array = wp.array(radius, dtype=wp.float32, device=device)
     # Queries in cell order walk the grid's table nearly sequentially.
-    order = wp.array(cell_order(candidates, cell_width).astype(np.int32), dtype=wp.int32, device=device)
+    order: wp.array = wp.array(cell_order(candidates, cell_width).astype(np.int32), dtype=wp.int32, device=device)
     alive = wp.empty(num, dtype=wp.int32, device=device)
     with GRID_LOCK:
         grid = hash_grid(accepted_wp, cell_width, dims)
@@ -214,10 +218,10 @@ def resolve_conflicts(
     num = candidates.shape[0]
     # Candidates are processed and stored cell by cell.
     order = cell_order(candidates, cell_width)
-    candidates_wp = wp.array(candidates[order], dtype=wp.vec3, device=device)
-    radius_wp = wp.array(radius[order], dtype=wp.float32, device=device)
-    priority_wp = wp.array(priority[order], dtype=wp.uint32, device=device)
-    index_wp = wp.array(index[order].astype(np.int32), dtype=wp.int32, device=device)
+    candidates_wp: wp.array = wp.array(candidates[order], dtype=wp.vec3, device=device)
+    radius_wp: wp.array = wp.array(radius[order], dtype=wp.float32, device=device)
+    priority_wp: wp.array = wp.array(priority[order], dtype=wp.uint32, device=device)
+    index_wp: wp.array = wp.array(index[order].astype(np.int32), dtype=wp.int32, device=device)
     keep = wp.empty(num, dtype=wp.int32, device=device)
     with GRID_LOCK:
         grid = hash_grid(candidates_wp, cell_width, dims)
@@ -233,6 +237,7 @@ def resolve_conflicts(
 
 
 @wp.kernel
+@no_type_check
 def _neighbours_kernel(
     grid: wp.uint64, points: wp.array(dtype=wp.vec3), radius: wp.float32, limit: wp.float32, row_starts: wp.array(dtype=wp.int32),
     capacity: wp.int32, offset: wp.int32, counts: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
@@ -269,7 +274,7 @@ def neighbour_lists(points: np.ndarray, radius: float, limit: float, capacity: i
     several times faster: queries then walk the grid's table and the point array in order.
     """
     num = points.shape[0]
-    points_wp = wp.array(points, dtype=wp.vec3, device=device)
+    points_wp: wp.array = wp.array(points, dtype=wp.vec3, device=device)
     counts = wp.empty(num, dtype=wp.int32, device=device)
     slots = wp.empty(num * capacity, dtype=wp.int32, device=device)
     fixed_width = wp.empty(0, dtype=wp.int32, device=device)
@@ -285,19 +290,21 @@ def neighbour_lists(points: np.ndarray, radius: float, limit: float, capacity: i
             table = slots.numpy().reshape(num, capacity)
             return row_offsets, table[np.arange(capacity)[None, :] < degree[:, None]]
         columns = wp.empty(int(row_offsets[-1]), dtype=wp.int32, device=device)
-        starts = wp.array(row_offsets[:-1].astype(np.int32), dtype=wp.int32, device=device)
+        starts: wp.array = wp.array(row_offsets[:-1].astype(np.int32), dtype=wp.int32, device=device)
         inputs = [grid.id, points_wp, radius, limit, starts, int(degree.max())]
         launch_in_chunks(_neighbours_kernel, 1, num, inputs, [counts, columns])
     return row_offsets, columns.numpy()
 
 
 @wp.func
+@no_type_check
 def _ranks_above(weight_a: wp.int32, a: wp.int32, weight_b: wp.int32, b: wp.int32):
     """Heap order: the larger weight first, ties to the lower index (``argmax`` semantics)."""
     return weight_a > weight_b or (weight_a == weight_b and a < b)
 
 
 @wp.func
+@no_type_check
 def _sift_down(
     heap: wp.array(dtype=wp.int32), position: wp.array(dtype=wp.int32), weight: wp.array(dtype=wp.int32), start: wp.int32,
     size: wp.int32,
@@ -323,6 +330,7 @@ def _sift_down(
 
 
 @wp.kernel
+@no_type_check
 def _eliminate_kernel(
     row_offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), pair_weight: wp.array(dtype=wp.int32),
     target: wp.int32, weight: wp.array(dtype=wp.int32), heap: wp.array(dtype=wp.int32), position: wp.array(dtype=wp.int32),
@@ -370,7 +378,7 @@ def eliminate(row_offsets: np.ndarray, columns: np.ndarray, pair_weight: np.ndar
         wp.array(pair_weight.astype(np.int32), dtype=wp.int32, device=device),
         int(target),
     ]
-    weight_wp = wp.array(weight.astype(np.int32), dtype=wp.int32, device=device)
+    weight_wp: wp.array = wp.array(weight.astype(np.int32), dtype=wp.int32, device=device)
     wp.launch(_eliminate_kernel, dim=1, inputs=inputs, outputs=[weight_wp, heap, position], device=device)
     return position.numpy() >= 0
 
@@ -382,11 +390,13 @@ ACCEPT_MARGIN = 1.0 - 2.0**-12
 
 
 @wp.func
+@no_type_check
 def _closer(d2: Any, j: int, best_d2: Any, best: int):
     return d2 < best_d2 or (d2 == best_d2 and j < best)
 
 
 @wp.kernel
+@no_type_check
 def _nearest_centroid_kernel(
     grid: wp.uint64, points: wp.array(dtype=Any), centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), offset: wp.int32,
     labels: wp.array(dtype=wp.int32),
@@ -431,9 +441,9 @@ def nearest_centroids(points: np.ndarray, centroids: np.ndarray, radius: float, 
     dtype = np.dtype(points.dtype)
     scalar = WARP_SCALAR[dtype]
     vec = wp.vec3d if scalar == wp.float64 else wp.vec3f  # the types wp.HashGrid accepts
-    points_wp = wp.array(points, dtype=vec, device=device)
-    centroids_wp = wp.array(centroids, dtype=vec, device=device)
-    params = wp.array(np.array([radius, radius * ACCEPT_MARGIN], dtype), dtype=scalar, device=device)
+    points_wp: wp.array = wp.array(points, dtype=vec, device=device)
+    centroids_wp: wp.array = wp.array(centroids, dtype=vec, device=device)
+    params: wp.array = wp.array(np.array([radius, radius * ACCEPT_MARGIN], dtype), dtype=scalar, device=device)
     labels = wp.empty(points.shape[0], dtype=wp.int32, device=device)
     with GRID_LOCK:
         grid = hash_grid(centroids_wp, cell_width, dims)

@@ -14,7 +14,7 @@ is zero at an exact collapse like the JAX path's safe norm.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 
@@ -29,6 +29,7 @@ __all__ = ["simplex_measures"]
 
 
 @wp.func
+@no_type_check
 def _measure(e0: Any, e1: Any, e2: Any, m: int, num_dims: int):
     """Signed ``det / m!`` when ``m = D``, else the unsigned Gram-Schmidt measure."""
     if m == num_dims:
@@ -43,6 +44,7 @@ def _measure(e0: Any, e1: Any, e2: Any, m: int, num_dims: int):
 
 
 @wp.func
+@no_type_check
 def _measure_gradient(e0: Any, e1: Any, e2: Any, m: int, num_dims: int):
     """``d measure / d e_k`` for ``k < 3`` (unused entries zero)."""
     zero = e0 - e0
@@ -75,6 +77,7 @@ def _measure_gradient(e0: Any, e1: Any, e2: Any, m: int, num_dims: int):
 
 
 @wp.func
+@no_type_check
 def _cell(points: Coordinates, reference: Coordinates, cells: Topology, b: int, c: int, num_points: int, num_dims: int):
     """The cell's state (``load_cell``) and reference measure; valid when usable with a finite, nonzero reference."""
     v, usable, e0, e1, e2, a0, a1, a2 = load_cell(points, reference, cells, b, c, num_points)
@@ -86,6 +89,7 @@ def _cell(points: Coordinates, reference: Coordinates, cells: Topology, b: int, 
 
 
 @wp.kernel
+@no_type_check
 def _forward_kernel(
     points: Coordinates, reference: Coordinates, cells: Topology, num_points: int, num_dims: int, offset: int, measure: PerItem,
     reference_measure: PerItem,
@@ -103,6 +107,7 @@ def _forward_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _adjoint_kernel(
     points: Coordinates, reference: Coordinates, cells: Topology, measure_bar: PerItem, reference_measure_bar: PerItem,
     num_points: int, num_dims: int, offset: int, points_bar: Coordinates, reference_bar: Coordinates,

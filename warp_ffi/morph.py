@@ -34,7 +34,7 @@ sequentially over the batch. Arrays are flattened over the batch (1-D arrays ind
 """
 
 import math
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -59,6 +59,7 @@ FAST_MIN_DIST2 = wp.constant(2.0**-100)  # squared distances above this are norm
 
 
 @wp.func
+@no_type_check
 def _wendland(q: Any):
     one = type(q)(1.0)
     a = one - q
@@ -67,12 +68,14 @@ def _wendland(q: Any):
 
 
 @wp.func
+@no_type_check
 def _wendland_derivative(q: Any):
     a = type(q)(1.0) - q
     return type(q)(-20.0) * q * a * a * a
 
 
 @wp.func
+@no_type_check
 def _block_hash(sx: wp.int32, sy: wp.int32, sz: wp.int32) -> wp.uint32:
     # Additive combination then an xorshift-multiply mix: XOR-of-products hashes collide
     # heavily on small integer grids, this one fills the table like a random function.
@@ -83,6 +86,7 @@ def _block_hash(sx: wp.int32, sy: wp.int32, sz: wp.int32) -> wp.uint32:
 
 
 @wp.func
+@no_type_check
 def _split(c: wp.int32):
     """Floor division of a cell coordinate by 3 and its residue in {0, 1, 2}."""
     r = c % 3
@@ -92,6 +96,7 @@ def _split(c: wp.int32):
 
 
 @wp.func
+@no_type_check
 def _shift(block: wp.int32, residue: wp.int32, offset: wp.int32):
     """Block and residue of the cell ``offset`` (-1, 0, 1) away."""
     r = residue + offset
@@ -103,6 +108,7 @@ def _shift(block: wp.int32, residue: wp.int32, offset: wp.int32):
 
 
 @wp.func
+@no_type_check
 def _classify(diff: Any, r: Any, inv_r2: Any):
     """``(status, q, fast)``: status 0 outside, 1 active (``0 < q < 1``), 2 exact coincidence.
 
@@ -135,6 +141,7 @@ def _classify(diff: Any, r: Any, inv_r2: Any):
 
 
 @wp.func
+@no_type_check
 def _classify_candidate(x: Any, controls: wp.array(dtype=Any), radius: wp.array(dtype=Any), boxes: wp.array(dtype=Any), j: int):
     """``_classify`` for control ``j`` once it passes the box pre-test (else status 0), and its ``1 / r^2``.
 
@@ -160,6 +167,7 @@ def _classify_candidate(x: Any, controls: wp.array(dtype=Any), radius: wp.array(
 
 
 @wp.func
+@no_type_check
 def _distance_gradient(diff: Any, r: Any, q: Any):
     """``dq / d(diff)`` for ``q = |diff / r|`` in the slow (tiny or unusual) cases."""
     s = diff / r
@@ -168,6 +176,7 @@ def _distance_gradient(diff: Any, r: Any, q: Any):
 
 
 @wp.func
+@no_type_check
 def _cell_gap(offset: int, f: Any):
     """Squared distance, in cell units, from a point at fraction ``f`` of its cell to a neighbour."""
     if offset < 0:
@@ -178,6 +187,7 @@ def _cell_gap(offset: int, f: Any):
 
 
 @wp.func
+@no_type_check
 def _cell_fraction(x: Any, h: Any, cell: int, limit: Any):
     """Position of ``x`` inside its cell in ``[0, 1]``; ``-1`` where rounding makes it unreliable."""
     y = x / h
@@ -187,6 +197,7 @@ def _cell_fraction(x: Any, h: Any, cell: int, limit: Any):
 
 
 @wp.func
+@no_type_check
 def _skip_cell(neighbour: int, f0: Any, f1: Any, f2: Any):
     """Whether neighbour cell ``neighbour`` (0..26) is out of reach of every support.
 
@@ -200,6 +211,7 @@ def _skip_cell(neighbour: int, f0: Any, f1: Any, f2: Any):
 
 
 @wp.func
+@no_type_check
 def _neighbour_bucket(blocks: wp.vec3i, residues: wp.vec3i, neighbour: int, mask: wp.uint32):
     """Bucket (in one design's table) of neighbour ``neighbour`` (0..26) of a cell.
 
@@ -213,6 +225,7 @@ def _neighbour_bucket(blocks: wp.vec3i, residues: wp.vec3i, neighbour: int, mask
 
 
 @wp.func
+@no_type_check
 def _grid_position(x: Any, cell: wp.vec3i, scale: Any):
     """Where point ``x`` sits in its cell ``cell``: per-axis fractions (see ``_cell_fraction``),
     and the cell's 3x3x3 block and residue (see ``_neighbour_bucket``)."""
@@ -226,6 +239,7 @@ def _grid_position(x: Any, cell: wp.vec3i, scale: Any):
 
 
 @wp.func
+@no_type_check
 def _neighbour_controls(
     bucket_offsets: wp.array(dtype=wp.int32), blocks: wp.vec3i, residues: wp.vec3i, neighbour: int, table_size: int, b: int,
     f0: Any, f1: Any, f2: Any,
@@ -238,6 +252,7 @@ def _neighbour_controls(
 
 
 @wp.kernel
+@no_type_check
 def _forward_kernel(
     points: wp.array(dtype=Any), point_cells: wp.array(dtype=wp.vec3i), controls: wp.array(dtype=Any),
     displacements: wp.array(dtype=Any), radius: wp.array(dtype=Any), boxes: wp.array(dtype=Any),
@@ -324,6 +339,7 @@ def _forward_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _backward_kernel(
     points: wp.array(dtype=Any), point_cells: wp.array(dtype=wp.vec3i), controls: wp.array(dtype=Any),
     displacements: wp.array(dtype=Any), radius: wp.array(dtype=Any), boxes: wp.array(dtype=Any),

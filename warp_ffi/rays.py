@@ -11,7 +11,7 @@ exactly. Nothing here is differentiated: geomjax replays the hit face's geometry
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax.numpy as jnp
 
@@ -26,6 +26,7 @@ __all__ = ["ray_hits"]
 
 
 @wp.kernel
+@no_type_check
 def _ray_kernel(
     mesh_words: wp.array(dtype=wp.uint32), origins32: wp.array(dtype=wp.vec3), directions32: wp.array(dtype=wp.vec3),
     origins: wp.array(dtype=Any), directions: wp.array(dtype=Any), vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.vec3i),
@@ -75,7 +76,8 @@ _RAY_OUTPUTS = ("faces_out", "t_out", "points_out", "normals_out")
 
 
 def _ray_types(scalar, build: bool) -> dict:
-    vec3f, ints = wp.array(dtype=wp.vec3), wp.array(dtype=wp.int32)
+    vec3f: wp.array = wp.array(dtype=wp.vec3)
+    ints: wp.array = wp.array(dtype=wp.int32)
     head = {"vertices32": vec3f, "faces_flat": ints} if build else {"mesh_words": wp.array(dtype=wp.uint32)}
     inputs = {"origins32": vec3f, "directions32": vec3f, "origins": vectors(scalar), "directions": vectors(scalar),
               "vertices": vectors(scalar), "faces": wp.array(dtype=wp.vec3i), "params32": scalars(wp.float32),

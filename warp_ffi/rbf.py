@@ -22,7 +22,7 @@ Only first-order reverse mode is supported (no ``jvp``), as in the reference's W
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, no_type_check
 
 import jax.numpy as jnp
 
@@ -35,8 +35,8 @@ __all__ = ["thin_plate_spline_field"]
 _SLICE = 256
 
 # The kernels' argument types (float types resolved per overload).
-Batched = wp.array3d(dtype=Any)  # (B, N, D) points and fields, (B, C, D) controls and weights, (B, D, D) linear parts
-PerDesign = wp.array2d(dtype=Any)  # (B, D) constant parts
+Batched: Any = wp.array3d(dtype=Any)  # (B, N, D) points and fields, (B, C, D) controls and weights, (B, D, D) linear parts
+PerDesign: Any = wp.array2d(dtype=Any)  # (B, D) constant parts
 
 
 def _types(s):
@@ -50,6 +50,7 @@ def _kernels(num_dims: int) -> dict:
     D = num_dims
 
     @wp.func
+    @no_type_check
     def row(values: wp.array3d(dtype=Any), b: int, i: int):
         """``values[b, i]`` as a ``D``-vector."""
         v = wp.vector(dtype=values.dtype, length=wp.static(D))
@@ -58,11 +59,13 @@ def _kernels(num_dims: int) -> dict:
         return v
 
     @wp.func
+    @no_type_check
     def store(values: wp.array3d(dtype=Any), b: int, i: int, v: Any):
         for k in range(wp.static(D)):
             values[b, i, k] = v[k]
 
     @wp.func
+    @no_type_check
     def linear_map(linear: wp.array3d(dtype=Any), b: int, v: Any, start: Any, transpose: int):
         """``start + v @ linear[b]``, or ``start + linear[b] @ v`` when ``transpose``, summed in index order."""
         out = wp.vector(dtype=linear.dtype, length=wp.static(D))
@@ -77,6 +80,7 @@ def _kernels(num_dims: int) -> dict:
         return out
 
     @wp.kernel(enable_backward=False, module="unique")
+    @no_type_check
     def field_kernel(
         points: Batched, controls: Batched, weights: Batched, constant: PerDesign, linear: Batched, field: Batched,
     ):  # fmt: skip
@@ -94,6 +98,7 @@ def _kernels(num_dims: int) -> dict:
         store(field, b, i, acc)
 
     @wp.kernel(enable_backward=False, module="unique")
+    @no_type_check
     def points_adjoint_kernel(
         points: Batched, controls: Batched, weights: Batched, linear: Batched, field_grad: Batched, points_grad: Batched,
     ):  # fmt: skip
@@ -110,6 +115,7 @@ def _kernels(num_dims: int) -> dict:
         store(points_grad, b, i, acc)
 
     @wp.kernel(enable_backward=False, module="unique")
+    @no_type_check
     def controls_adjoint_kernel(
         points: Batched, controls: Batched, weights: Batched, field_grad: Batched, controls_grad: Batched, weights_grad: Batched,
     ):  # fmt: skip
@@ -132,6 +138,7 @@ def _kernels(num_dims: int) -> dict:
             wp.atomic_add(weights_grad, b, j, k, w_bar[k])
 
     @wp.kernel(enable_backward=False, module="unique")
+    @no_type_check
     def affine_adjoint_kernel(
         points: Batched, field_grad: Batched, constant_grad: PerDesign, linear_grad: Batched,
     ):  # fmt: skip

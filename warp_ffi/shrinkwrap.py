@@ -32,7 +32,7 @@ BVH; for a prebuilt BVH the frame is the identity. Distances are measured on
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -52,6 +52,7 @@ MAX_PASSES = 160  # radius doublings from float32's smallest normal to its large
 
 
 @wp.func
+@no_type_check
 def _segment_feature(u: Any, v: Any, u_index: int, v_index: int):
     """Squared distance from the origin to segment ``uv`` and its nearest feature.
 
@@ -79,6 +80,7 @@ def _segment_feature(u: Any, v: Any, u_index: int, v_index: int):
 
 
 @wp.func
+@no_type_check
 def face_feature(a: Any, b: Any, c: Any, ia: int, ib: int, ic: int, face: int):
     """Squared distance from the origin to triangle ``abc`` and the nearest feature.
 
@@ -109,6 +111,7 @@ def face_feature(a: Any, b: Any, c: Any, ia: int, ib: int, ic: int, face: int):
 
 
 @wp.func
+@no_type_check
 def _nearest_in_ball(
     mesh: wp.uint64, centre: wp.vec3, radius: float, x: Any, s: Any, vertices: wp.array(dtype=Any),
     faces: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32),
@@ -143,6 +146,7 @@ def _nearest_in_ball(
 
 
 @wp.kernel
+@no_type_check
 def _nearest_kernel(
     mesh_words: wp.array(dtype=wp.uint32), points: wp.array(dtype=Any), vertices: wp.array(dtype=Any),
     faces: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32), search_points: wp.array(dtype=wp.vec3),
@@ -194,8 +198,8 @@ _nearest = Overloads(_nearest_kernel, lambda s: {"points": vectors(s), "vertices
 
 
 def _search_types(scalar, build: bool) -> dict:
-    head = {"search_vertices": wp.array(dtype=wp.vec3)} if build else {"mesh_words": wp.array(dtype=wp.uint32)}
-    ints = wp.array(dtype=wp.int32)
+    head: dict[str, wp.array] = {"search_vertices": wp.array(dtype=wp.vec3)} if build else {"mesh_words": wp.array(dtype=wp.uint32)}
+    ints: wp.array = wp.array(dtype=wp.int32)
     inputs = {"points": vectors(scalar), "vertices": vectors(scalar), "faces": ints, "valid": ints,
               "search_points": wp.array(dtype=wp.vec3), "inv_scale": scalars(scalar), "limits": scalars(wp.float32)}  # fmt: skip
     return {**head, **inputs, "nearest": ints}

@@ -19,7 +19,7 @@ same products.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -32,6 +32,7 @@ __all__ = ["vertex_incidence", "stiffness_product", "stiffness_diagonal"]
 
 
 @wp.kernel(enable_backward=False)
+@no_type_check
 def _product_kernel(
     x: wp.array(dtype=Any), off_diagonal: wp.array(dtype=Any), cells: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
     order: wp.array(dtype=wp.int32), num_cell_points: wp.int32, offset: wp.int32, y: wp.array(dtype=Any),
@@ -55,6 +56,7 @@ def _product_kernel(
 
 
 @wp.kernel(enable_backward=False)
+@no_type_check
 def _diagonal_kernel(
     off_diagonal: wp.array(dtype=Any), offsets: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
     num_cell_points: wp.int32, offset: wp.int32, diagonal: wp.array(dtype=Any),

@@ -19,7 +19,7 @@ cell and the backward kernel scatters them, times the cotangent, to the sorted v
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -35,6 +35,7 @@ __all__ = ["simplex_strain_terms"]
 
 
 @wp.func
+@no_type_check
 def _deformation(e0: Any, e1: Any, e2: Any, r00: Any, r01: Any, r02: Any, r11: Any, r12: Any, r22: Any, m: int):
     """Columns of ``F = E^T R^-1`` by forward substitution (unused columns zero)."""
     one = type(r00)(1.0)
@@ -49,6 +50,7 @@ def _deformation(e0: Any, e1: Any, e2: Any, r00: Any, r01: Any, r02: Any, r11: A
 
 
 @wp.func
+@no_type_check
 def _density(f0: Any, f1: Any, f2: Any, mu: Any, kappa: Any, m: int):
     """``(w, S, C)``: energy density per reference measure, ``dw/dC`` and ``C`` (3x3, unused zero)."""
     one = type(mu)(1.0)
@@ -97,6 +99,7 @@ def _density(f0: Any, f1: Any, f2: Any, mu: Any, kappa: Any, m: int):
 
 
 @wp.func
+@no_type_check
 def _back_substitute(y0: Any, y1: Any, y2: Any, r00: Any, r01: Any, r02: Any, r11: Any, r12: Any, r22: Any):
     """Rows of ``R^-1 Y`` for upper-triangular ``R`` (unused rows of ``Y`` are zero)."""
     one = type(r00)(1.0)
@@ -107,6 +110,7 @@ def _back_substitute(y0: Any, y1: Any, y2: Any, r00: Any, r01: Any, r02: Any, r1
 
 
 @wp.func
+@no_type_check
 def _cell_energy(
     points: wp.array(dtype=Any), reference: wp.array(dtype=Any), cells: wp.array2d(dtype=wp.int32), moduli: wp.array(dtype=Any),
     b: int, c: int, num_points: int,
@@ -126,6 +130,7 @@ def _cell_energy(
 
 
 @wp.kernel
+@no_type_check
 def _forward_kernel(
     points: Coordinates, reference: Coordinates, cells: Topology, moduli: wp.array(dtype=Any), num_points: int, offset: int,
     energy: PerItem,
@@ -139,6 +144,7 @@ def _forward_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _gradient_kernel(
     points: Coordinates, reference: Coordinates, cells: Topology, moduli: wp.array(dtype=Any), num_points: int, offset: int,
     energy: PerItem, edge_gradients: wp.array2d(dtype=Any), valid_cells: wp.array(dtype=wp.int32),
@@ -184,6 +190,7 @@ def _gradient_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _scatter_kernel(
     cells: Topology, edge_gradients: wp.array2d(dtype=Any), valid_cells: wp.array(dtype=wp.int32), energy_bar: PerItem,
     num_points: int, offset: int, points_bar: Coordinates, reference_bar: Coordinates,

@@ -9,7 +9,7 @@ adjoint kernel scatters ``(y_1 x y_2) / 6`` etc. to the face's vertices.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 
@@ -24,6 +24,7 @@ __all__ = ["face_volumes"]
 
 
 @wp.func
+@no_type_check
 def _face(points: wp.array(dtype=Any), triangles: wp.array2d(dtype=wp.int32), origin: Any, b: int, f: int, num_points: int):
     """Vertex indices, origin-relative corners and whether the face is valid."""
     i = triangles[f, 0]
@@ -46,6 +47,7 @@ def _face(points: wp.array(dtype=Any), triangles: wp.array2d(dtype=wp.int32), or
 
 
 @wp.func
+@no_type_check
 def _signed_volume(points: wp.array(dtype=Any), triangles: wp.array2d(dtype=wp.int32), origin: Any, b: int, f: int, num_points: int):
     """``y_0 . (y_1 x y_2) / 6`` of face ``f``, NaN when it is invalid."""
     valid, i, j, k, y0, y1, y2 = _face(points, triangles, origin, b, f, num_points)
@@ -56,6 +58,7 @@ def _signed_volume(points: wp.array(dtype=Any), triangles: wp.array2d(dtype=wp.i
 
 
 @wp.func
+@no_type_check
 def _scatter_volume_gradient(
     grad: wp.array(dtype=Any), points: wp.array(dtype=Any), triangles: wp.array2d(dtype=wp.int32), origin: Any, g: Any, b: int,
     f: int, num_points: int,
@@ -70,6 +73,7 @@ def _scatter_volume_gradient(
 
 
 @wp.kernel
+@no_type_check
 def _forward_kernel(
     points: Coordinates, reference: Coordinates, triangles: Topology, origins: wp.array2d(dtype=Any), num_points: int, offset: int,
     volume: PerItem, reference_volume: PerItem,
@@ -82,6 +86,7 @@ def _forward_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _adjoint_kernel(
     points: Coordinates, reference: Coordinates, triangles: Topology, origins: wp.array2d(dtype=Any), volume_bar: PerItem,
     reference_volume_bar: PerItem, num_points: int, offset: int, points_bar: Coordinates, reference_bar: Coordinates,

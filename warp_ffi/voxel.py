@@ -32,6 +32,8 @@ with ``support_winding_number=True``): it varies continuously off the surface, s
 centre and every sample is queried.
 """
 
+from typing import no_type_check
+
 import jax
 import jax.numpy as jnp
 
@@ -54,6 +56,7 @@ _MIX_B = wp.constant(wp.uint32(0x846CA68B))
 
 
 @wp.func
+@no_type_check
 def _mix(h: wp.uint32):
     # "lowbias32" integer hash (C. Wellons); bit-identical to geomjax._hashing.lowbias32.
     h = h ^ (h >> wp.uint32(16))
@@ -64,12 +67,14 @@ def _mix(h: wp.uint32):
 
 
 @wp.func
+@no_type_check
 def _jitter(seed: wp.uint32, voxel: wp.uint32, sample: wp.uint32, axis: wp.uint32):
     h = _mix(_mix(_mix(seed) + voxel) + wp.uint32(3) * sample + axis)
     return wp.float32(h >> wp.uint32(8)) * UNIT_FROM_BITS
 
 
 @wp.func
+@no_type_check
 def _sample_point(lower: wp.vec3, size: float, strata: int, seed: wp.uint32, voxel: wp.uint32, sample: int):
     """Sample ``s`` lies in sub-cube ``s mod strata**3`` of the voxel, uniformly jittered."""
     cell = sample % (strata * strata * strata)
@@ -80,6 +85,7 @@ def _sample_point(lower: wp.vec3, size: float, strata: int, seed: wp.uint32, vox
 
 
 @wp.func
+@no_type_check
 def _sample_weight(sample: int, num_samples: int, strata: int):
     """Integer weight of a sample: every sub-cube weighs the same whatever its sample count.
 
@@ -97,6 +103,7 @@ def _sample_weight(sample: int, num_samples: int, strata: int):
 
 
 @wp.func
+@no_type_check
 def _weight_total(num_samples: int, strata: int):
     cells = strata * strata * strata
     q = num_samples / cells
@@ -106,6 +113,7 @@ def _weight_total(num_samples: int, strata: int):
 
 
 @wp.func
+@no_type_check
 def _query_inside(mesh: wp.uint64, p: wp.vec3, centre: wp.vec3, reach: float, open_mesh: int, accuracy: float, threshold: float):
     """``(inside, distance to the surface)``; the radius always reaches the mesh."""
     radius = (wp.length(p - centre) + reach) * RADIUS_PAD
@@ -117,6 +125,7 @@ def _query_inside(mesh: wp.uint64, p: wp.vec3, centre: wp.vec3, reach: float, op
 
 
 @wp.func
+@no_type_check
 def _edge_plane(p: wp.vec3, q: wp.vec3, p_index: int, q_index: int):
     """``(p x q, False)`` or ``(q x p, True)``: the edge's plane through the voxel centre (the
     origin here), from its lower-indexed endpoint, and whether that reverses the edge.
@@ -130,6 +139,7 @@ def _edge_plane(p: wp.vec3, q: wp.vec3, p_index: int, q_index: int):
 
 
 @wp.func
+@no_type_check
 def _queried_fraction(
     mesh: wp.uint64, lower: wp.vec3, size: float, voxel: wp.uint32, seed: wp.uint32, num_samples: int, strata: int,
     centre: wp.vec3, reach: float, open_mesh: int, accuracy: float, threshold: float,
@@ -143,6 +153,7 @@ def _queried_fraction(
 
 
 @wp.func
+@no_type_check
 def _crossing_fraction(
     mesh: wp.uint64, vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), lower: wp.vec3, size: float,
     voxel: wp.uint32, seed: wp.uint32, num_samples: int, strata: int, mid: wp.vec3, mid_inside: bool,
@@ -192,6 +203,7 @@ def _crossing_fraction(
 
 
 @wp.kernel
+@no_type_check
 def _mark_kernel(
     vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), params: wp.array(dtype=wp.float32), nx: int, ny: int,
     nz: int, offset: int, marked: wp.array(dtype=wp.int32),
@@ -221,6 +233,7 @@ def _mark_kernel(
 
 
 @wp.kernel
+@no_type_check
 def _row_kernel(
     mesh: wp.uint64, vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), marked: wp.array(dtype=wp.int32),
     params: wp.array(dtype=wp.float32), nx: int, ny: int, num_samples: int, strata: int, seed: wp.uint32, open_mesh: int,

@@ -384,7 +384,7 @@ def _bernstein_field_unrolled(u: jax.Array, lattice: jax.Array) -> jax.Array:
     columns = [bernstein_columns(u[:, d], n) for d, n in enumerate(resolution)]
 
     def contract(axis: int, node: tuple[int, ...]) -> list[jax.Array]:
-        total = None
+        total: list[jax.Array] | None = None
         for i in range(resolution[axis]):
             if axis == len(resolution) - 1:
                 inner = [lattice[node + (i, c)] for c in range(num_dims)]
@@ -392,6 +392,7 @@ def _bernstein_field_unrolled(u: jax.Array, lattice: jax.Array) -> jax.Array:
                 inner = contract(axis + 1, node + (i,))
             term = [columns[axis][i] * value for value in inner]
             total = term if total is None else [a + t for a, t in zip(total, term, strict=True)]
+        assert total is not None, "every lattice axis has at least two nodes (checked on entry)"
         return total
 
     return jnp.stack(contract(0, ()), axis=-1)

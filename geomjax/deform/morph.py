@@ -117,13 +117,13 @@ def morph_points(
     point_weights = check_point_weights(point_weights, points)
     check_choice("kernel", kernel, KERNELS)
     backend = select_implementation("morph_points", implementation, platform=platform_of(points))
-    radius = _radius_array(radius, control_points, batched)
+    radii = _radius_array(radius, control_points, batched)
 
     args = (
         add_batch_axis(points, batched),
         add_batch_axis(control_points, batched),
         add_batch_axis(control_displacements, batched),
-        radius,
+        radii,
         add_batch_axis(point_weights, batched),
     )
     out = map_local_shards(functools.partial(_morph, backend=backend), args, (2, 1, 1, 1, 2), out_axes=2)

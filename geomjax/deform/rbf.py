@@ -128,9 +128,9 @@ def radial_basis_function_deform_points(
     control_points = check_companion("points", points, "control_points", control_points)
     control_displacements = check_same_shape("control_points", control_points, "control_displacements", control_displacements)
     point_weights = check_point_weights(point_weights, points)
-    implementation = select_implementation(_NAME, implementation, platform=platform_of(points))
+    backend = select_implementation(_NAME, implementation, platform=platform_of(points))
     fit = ThinPlateSplineFit.fit(control_points, control_displacements, kernel=kernel, polynomial=polynomial, smoothing=smoothing)
-    return fit(points, point_weights=point_weights, implementation=implementation)
+    return fit._deformed(points, point_weights, backend)
 
 
 class ThinPlateSplineFit(eqx.Module):
@@ -222,6 +222,7 @@ class ThinPlateSplineFit(eqx.Module):
             raise ValueError(f"polynomial=True needs at least D + 1 = {num_dims + 1} control points in {num_dims}-D (or none), got {num_controls}")
         controls = add_batch_axis(control_points, batched)
         displacements = add_batch_axis(control_displacements, batched)
+        leaves: tuple[jax.Array, ...]
         if num_controls == 0:
             batch, dtype = controls.shape[0], controls.dtype
             leaves = (
@@ -233,20 +234,22 @@ class ThinPlateSplineFit(eqx.Module):
                 jnp.zeros((batch, num_dims, num_dims), dtype),
             )
         else:
-            smoothing = jnp.asarray(smoothing, controls.dtype)
+            smoothing_array = jnp.asarray(smoothing, controls.dtype)
             # The fit's singularity check (equinox.error_if) needs check_vma off; both inputs are
             # sharded along the design axis, so nothing is replicated.
-            leaves = map_local_shards(lambda c, d: _fit_batch(c, d, smoothing, polynomial), (controls, displacements), (1, 1), out_axes=1, check_vma=False)
-        leaves = tuple(remove_batch_axis(leaf, batched) for leaf in leaves)
-        return cls(*leaves, polynomial=polynomial, batched=batched)
+            leaves = map_local_shards(
+                lambda c, d: _fit_batch(c, d, smoothing_array, polynomial), (controls, displacements), (1, 1), out_axes=1, check_vma=False
+            )
+        centre, scale, normalised_controls, weights, constant, linear = (remove_batch_axis(leaf, batched) for leaf in leaves)
+        return cls(centre, scale, normalised_controls, weights, constant, linear, polynomial=polynomial, batched=batched)
 
     def displacement(
         self, points: Float[Array, "*batch num_points num_dims"], *, implementation: str | None = None
     ) -> Float[Array, "*batch num_points num_dims"]:
         """The fitted field ``u(points)`` (not added to the points), shape and dtype of ``points``."""
         points = self._check_points(points)
-        implementation = self._implementation(points, implementation)
-        return remove_batch_axis(self._field(add_batch_axis(points, self.batched), implementation), self.batched)
+        backend = self._implementation(points, implementation)
+        return remove_batch_axis(self._field(add_batch_axis(points, self.batched), backend), self.batched)
 
     def __call__(
         self,
@@ -256,13 +259,18 @@ class ThinPlateSplineFit(eqx.Module):
         implementation: str | None = None,
     ) -> Float[Array, "*batch num_points num_dims"]:
         """Deformed points ``x + w * u(x)``; arguments as in :func:`radial_basis_function_deform_points`."""
-        points = self._check_points(points)
-        point_weights = check_point_weights(point_weights, points)
-        implementation = self._implementation(points, implementation)
-        field = remove_batch_axis(self._field(add_batch_axis(points, self.batched), implementation), self.batched)
-        return apply_point_weights(points, field, point_weights)
+        return self._deformed(points, point_weights, implementation)
 
     # -- internals ---------------------------------------------------------------------------
+
+    def _deformed(self, points, point_weights, implementation: str | Implementation | None) -> jax.Array:
+        # Also takes a resolved backend: radial_basis_function_deform_points selects it before the
+        # fit, so that an unknown or unavailable one is reported first.
+        points = self._check_points(points)
+        point_weights = check_point_weights(point_weights, points)
+        backend = self._implementation(points, implementation)
+        field = remove_batch_axis(self._field(add_batch_axis(points, self.batched), backend), self.batched)
+        return apply_point_weights(points, field, point_weights)
 
     def _check_points(self, points) -> jax.Array:
         points, batched = check_coordinates("points", points)
@@ -270,7 +278,7 @@ class ThinPlateSplineFit(eqx.Module):
         check_companion("points", points, "the fit's control_points", self.normalised_controls)
         return points
 
-    def _implementation(self, points, implementation) -> Implementation:
+    def _implementation(self, points, implementation: str | Implementation | None) -> Implementation:
         return select_implementation(_NAME, implementation, platform=platform_of(points))
 
     def _field(self, points: jax.Array, implementation: Implementation) -> jax.Array:
@@ -279,14 +287,14 @@ class ThinPlateSplineFit(eqx.Module):
         if points.shape[0] == 0 or points.shape[1] == 0:
             return jnp.zeros(points.shape, points.dtype)
         budget = _BLOCK_BYTES.get(platform_of(points), _DEFAULT_BLOCK_BYTES)
-        return map_local_shards(lambda *arrays: _evaluate(*arrays, implementation, budget), (points, *leaves), (2, 1, 1, 1, 1, 1, 1), out_axes=2)
+        return map_local_shards(functools.partial(_evaluate, implementation, budget), (points, *leaves), (2, 1, 1, 1, 1, 1, 1), out_axes=2)
 
 
 # -- evaluation --------------------------------------------------------------------------------
 
 
 @eqx.filter_jit
-def _evaluate(points, centre, scale, controls, weights, constant, linear, implementation: Implementation, budget: int):
+def _evaluate(implementation: Implementation, budget: int, points, centre, scale, controls, weights, constant, linear):
     """The field on ``(B, N, D)`` points from batched fit leaves (one compiled program per shape)."""
     normalised = (points - centre[:, None, :]) / scale[:, None, None]
     if implementation.is_warp:

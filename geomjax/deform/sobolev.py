@@ -42,6 +42,7 @@ from ..linalg import (
     solution_or_error,
     uniform_lumped_mass,
 )
+from ..linalg._helmholtz import StiffnessOperator
 
 __all__ = ["sobolev_deform_points"]
 
@@ -329,6 +330,7 @@ def _jax_solve(points, displacement, free, *, cells, pattern: RowPattern | None,
                length_scale_squared, tolerance, max_iterations):  # fmt: skip
     """``u`` for one item ``(N, D)``."""
     local, measures = _checked_stiffness(points, cells)
+    stiffness: StiffnessOperator
     if pattern is None:
         stiffness = CellStiffness.assemble(local, cells, points.shape[0])
     else:

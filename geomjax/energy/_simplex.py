@@ -195,7 +195,8 @@ def gram_schmidt(edges: list[jax.Array]):
     previous ones) and the upper-triangular ``R`` as a dict ``{(i, j): (...)}`` with ``i <= j``;
     ``r[k, k] >= 0`` are the norms of the orthogonalised edges.
     """
-    frame, r = [], {}
+    frame: list[jax.Array] = []
+    r: dict[tuple[int, int], jax.Array] = {}
     for k, v in enumerate(edges):
         for j in range(k):
             r[j, k] = dot(frame[j], v)

@@ -148,7 +148,7 @@ def strain_terms(points: jax.Array, reference_points: jax.Array, cells: jax.Arra
     r = {(i, j): jnp.where(valid, value, 1 if i == j else 0) for (i, j), value in r.items()}
 
     # F = E^T R^-1: column k is (e_k - sum_{j<k} r_jk f_j) / r_kk.
-    columns = []
+    columns: list[jax.Array] = []
     for k, v in enumerate(edges):
         for j in range(k):
             v = v - r[j, k][..., None] * columns[j]

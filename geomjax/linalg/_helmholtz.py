@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from typing import Protocol
 
 import equinox as eqx
 import jax
@@ -25,6 +25,14 @@ def uniform_lumped_mass(measures: Float[Array, " C"], num_referenced: Int[Array,
     return jnp.where(num_referenced > 0, jnp.sum(measures) / jnp.maximum(count, one), one)
 
 
+class StiffnessOperator(Protocol):
+    """What :class:`HelmholtzOperator` needs of ``K``: the product on ``(N, D)`` blocks and the diagonal."""
+
+    def __call__(self, x: Float[Array, "N D"]) -> Float[Array, "N D"]: ...
+
+    def diagonal(self) -> Float[Array, " N"]: ...
+
+
 class HelmholtzOperator(eqx.Module):
     """``A x = m̄ x + l^2 K x`` on free rows, ``A x = x`` on fixed rows, fixed columns removed.
 
@@ -40,7 +48,7 @@ class HelmholtzOperator(eqx.Module):
         free: ``(N,)`` bool, false at Dirichlet (fixed) rows; ``None`` when no row is fixed.
     """
 
-    stiffness: Callable
+    stiffness: StiffnessOperator
     mass: Float[Array, ""]
     length_scale_squared: Float[Array, ""]
     free: Bool[Array, " N"] | None

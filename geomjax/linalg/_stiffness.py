@@ -165,12 +165,13 @@ def row_pattern(cells: np.ndarray, num_points: int) -> RowPattern | None:
         if key in _PATTERN_CACHE:
             _PATTERN_CACHE.move_to_end(key)
             return _PATTERN_CACHE[key]
-    pattern = _build_row_pattern(cells.astype(np.int64), num_points)
-    if pattern is not None:
+    host_pattern = _build_row_pattern(cells.astype(np.int64), num_points)
+    pattern: RowPattern | None = None
+    if host_pattern is not None:
         # Kept on the device, so repeated eager calls do not copy the pattern again (concrete
         # arrays even when first built while tracing, so the cache never holds a tracer).
         with jax.ensure_compile_time_eval():
-            pattern = RowPattern(*(jnp.asarray(a) for a in pattern))
+            pattern = RowPattern(*(jnp.asarray(a) for a in host_pattern))
     with _PATTERN_LOCK:
         _PATTERN_CACHE[key] = pattern
         while len(_PATTERN_CACHE) > _PATTERN_CACHE_SIZE:
@@ -178,7 +179,8 @@ def row_pattern(cells: np.ndarray, num_points: int) -> RowPattern | None:
     return pattern
 
 
-def _build_row_pattern(cells: np.ndarray, num_points: int) -> RowPattern | None:
+def _build_row_pattern(cells: np.ndarray, num_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The :class:`RowPattern` fields as host arrays, in field order; ``None`` when padding would be wasteful."""
     a, b = off_diagonal_pairs(cells.shape[1])
     rows = cells[:, a].reshape(-1)
     columns = cells[:, b].reshape(-1)
@@ -193,7 +195,7 @@ def _build_row_pattern(cells: np.ndarray, num_points: int) -> RowPattern | None:
     neighbours = np.repeat(np.arange(num_points, dtype=np.int32), width)
     neighbours[unique_slots] = (unique_keys % num_points).astype(np.int32)
     referenced = np.bincount(cells.reshape(-1), minlength=num_points) > 0
-    return RowPattern(neighbours.reshape(num_points, width), unique_slots[entry_to_unique.reshape(-1)].astype(np.int32), referenced)
+    return neighbours.reshape(num_points, width), unique_slots[entry_to_unique.reshape(-1)].astype(np.int32), referenced
 
 
 # ---------------------------------------------------------------------------------------------

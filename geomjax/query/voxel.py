@@ -185,10 +185,11 @@ def _grid_dims(grid_dims) -> tuple[int, int, int]:
         raise TypeError(f"grid_dims must be a sequence or an array of 3 integers, got {type(grid_dims).__name__}")
     if len(grid_dims) != 3:
         raise ValueError(f"grid_dims must have 3 entries (nx, ny, nz), got {len(grid_dims)}")
-    dims = tuple(check_integer(f"grid_dims[{i}]", d, minimum=1) for i, d in enumerate(grid_dims))
-    if math.prod(dims) > _MAX_VOXELS:
-        raise ValueError(f"grid_dims {dims} has {math.prod(dims)} voxels, more than {_MAX_VOXELS}")
-    return dims
+    nx, ny, nz = (check_integer(f"grid_dims[{i}]", d, minimum=1) for i, d in enumerate(grid_dims))
+    checked = (nx, ny, nz)
+    if math.prod(checked) > _MAX_VOXELS:
+        raise ValueError(f"grid_dims {checked} has {math.prod(checked)} voxels, more than {_MAX_VOXELS}")
+    return checked
 
 
 def _strata(n_samples: int) -> int:
@@ -294,9 +295,9 @@ def voxel_fractions_jax(
     triangles = vertices[faces]
     lower, samples = sample_points(origin, voxel_size, grid, n_samples, strata, seed)
     centres = lower + jnp.float32(0.5) * jnp.float32(voxel_size)
-    threshold = jnp.asarray(threshold, dtype)
-    centre_inside = winding_numbers(centres.astype(dtype), triangles) > threshold
-    sample_inside = winding_numbers(samples.reshape(-1, 3).astype(dtype), triangles).reshape(samples.shape[:2]) > threshold
+    threshold_value = jnp.asarray(threshold, dtype)
+    centre_inside = winding_numbers(centres.astype(dtype), triangles) > threshold_value
+    sample_inside = winding_numbers(samples.reshape(-1, 3).astype(dtype), triangles).reshape(samples.shape[:2]) > threshold_value
     weights, total = sample_weights(n_samples, strata)
     hits = jnp.sum(jnp.where(sample_inside, jnp.asarray(weights), 0), axis=-1)
     sampled = hits.astype(jnp.float32) / jnp.float32(total)

@@ -176,7 +176,8 @@ def remeshing(
 
 def remesh_with_sources(
     mesh_vertices: Float[Array, "num_vertices 3"],
-    mesh_indices: Int[Array, "num_faces 3"],
+    # Host indices too: Mesh.remesh passes its validated NumPy cells (no device round trip).
+    mesh_indices: Int[Array, "num_faces 3"] | Int[np.ndarray, "num_faces 3"],
     n_clusters: int,
     *,
     density_exponent: float = 1.0,

@@ -239,8 +239,8 @@ def _surface(vertices: jax.Array, faces: np.ndarray, vertex_radius: np.ndarray |
         corner_radius = np.full(faces.shape, radius32, np.float32)
         max_radius = float(radius32)
     else:
-        radius32 = vertex_radius.astype(np.float32)
-        corner_radius = radius32[faces]
+        vertex_radius32 = vertex_radius.astype(np.float32)
+        corner_radius = vertex_radius32[faces]
         max_radius = float(corner_radius.max())
     put = functools.partial(jax.device_put, device=next(iter(vertices.devices())))
     return _Surface(
