@@ -1,29 +1,35 @@
 """Data-dependent checks that reach callers as the documented exception type.
 
 A check on values that are only known when a compiled program runs (an index range, finiteness,
-a singular fit, a solve that did not converge) is an ``equinox.error_if``: the outputs depend on
-it, so it can never be skipped. When it fails, JAX reports a ``JaxRuntimeError: INTERNAL:
-CpuCallback error ...`` (or, from its C++ dispatch path, a ``ValueError`` with the same text)
-with the message buried in a traceback, ``equinox.filter_jit`` reports an
-``EquinoxRuntimeError`` with a long banner, and JAX logs the failed callback to stderr.
+a singular fit, a solve that did not converge) must fail that program: its outputs depend on the
+check, so it can never be skipped. How a failure reads depends on the mechanism:
 
-This module is the one place that turns those back into the documented exception:
+* an ``equinox.error_if`` raises from a host callback, which JAX reports as ``JaxRuntimeError:
+  INTERNAL: CpuCallback error ...`` with the whole Python stack before the message (and an
+  equinox banner after it), and logs the failed callback to stderr;
+* the XLA FFI target of :mod:`._check_target` (CPU) fails the program with the message as the
+  error text, ``INVALID_ARGUMENT: <message>`` (``FAILED_PRECONDITION`` for ``RuntimeError``
+  checks), and prints nothing.
+
+This module is the one place that makes the checks and turns their failures back into the
+documented exception:
 
 * :func:`runtime_check` / :func:`runtime_branched_check` replace ``eqx.error_if`` /
   ``eqx.branched_error_if``: concrete predicates raise the documented type at once; traced ones
-  become an ``equinox.error_if`` whose message is recorded with its exception type.
-* :func:`checked_pure_callback` is ``jax.pure_callback`` for host functions that may raise: the
-  exception's type and message are recorded the same way.
+  become the FFI check on CPU and ``equinox``'s elsewhere (``lax.platform_dependent`` picks at
+  lowering), with the message recorded with its exception type.
+* :func:`checked_pure_callback` is ``jax.pure_callback`` for host functions that may raise: on
+  CPU the host function reports the exception to the FFI check instead of raising it.
 * :func:`raises_documented_errors` (a decorator for public ops) and :func:`documented_errors` (a
-  context manager, used by ``torch_bridge`` around its jitted programs) run the call and turn a
-  runtime error that carries a recorded message into ``error(message)`` (``from None``: the first
-  line is the op's message). Other exceptions pass through unchanged. While such a call runs,
-  JAX's "jax.pure_callback failed" log records of these checks are dropped, so nothing reaches
-  stderr.
+  context manager and decorator, used by ``torch_bridge`` around its jitted programs and public
+  as ``geomjax.documented_errors`` for a user's own) run the call and turn a runtime error that
+  carries a recorded message into ``error(message)`` (``from None``: the first line is the op's
+  message). Other exceptions pass through unchanged. While such a call runs, JAX's "jax.pure_callback
+  failed" log records of these checks are dropped, so nothing reaches stderr.
 
 Under a user's own ``jax.jit`` the op is only traced by the decorated call; the check fails
-later, when the user's program runs, and reaches the user as JAX's (or equinox's) runtime error,
-whose text contains the message.
+later, when the user's program runs, and reaches the user as JAX's runtime error: on CPU its text
+is the status and the op's message (nothing before it, nothing printed); on GPU it is equinox's.
 """
 
 from __future__ import annotations
@@ -32,10 +38,14 @@ import functools
 import logging
 import threading
 from collections.abc import Callable, Sequence
+from typing import Literal
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
+
+from . import _check_target
 
 __all__ = ["checked_pure_callback", "documented_errors", "raises_documented_errors", "runtime_branched_check", "runtime_check", "translate_runtime_error"]
 
@@ -60,30 +70,47 @@ def _is_concrete(value) -> bool:
 def runtime_check(x, failed, message: str, error: type[Exception] = ValueError):
     """``x`` after checking that ``failed`` (a bool or bool array, any element) is false.
 
-    A concrete ``failed`` raises ``error(message)`` at once. A traced one becomes an
-    ``equinox.error_if`` on ``x`` (use the returned value: the check is attached to it) and
-    ``message`` is recorded so :func:`documented_errors` raises ``error(message)`` when the
-    compiled check fails.
+    A concrete ``failed`` raises ``error(message)`` at once. A traced one becomes a check on
+    ``x`` (use the returned value: the check is attached to it) that fails the compiled program
+    with ``message`` (see :func:`_traced_check`), and ``message`` is recorded so
+    :func:`documented_errors` raises ``error(message)``.
     """
     if _is_concrete(failed):
         if bool(np.any(np.asarray(failed))):
             raise error(message)
         return x
-    _register(message, error)
-    return eqx.error_if(x, failed, message)
+    return _traced_check(x, failed, jnp.zeros((), jnp.int32), (message,), error)
 
 
 def runtime_branched_check(x, failed, index, messages: Sequence[str], error: type[Exception] = RuntimeError):
     """As :func:`runtime_check` with one of several ``messages`` chosen by ``index``
-    (``equinox.branched_error_if``)."""
+    (an int array broadcastable with ``failed``; ``messages[index]`` must be non-empty where
+    ``failed``)."""
     if _is_concrete(failed) and _is_concrete(index):
         if bool(np.any(np.asarray(failed))):
             raise error(messages[int(np.max(np.asarray(index)))])
         return x
+    return _traced_check(x, failed, index, tuple(messages), error)
+
+
+def _traced_check(x, failed, index, messages: tuple[str, ...], error: type[Exception]):
+    """The compiled check: on CPU the FFI target of :mod:`._check_target`, whose error text is
+    the message itself (also under a user's own ``jax.jit``); elsewhere ``equinox``'s
+    ``branched_error_if`` (a host callback, its message after JAX's traceback)."""
     for message in messages:
         if message:
             _register(message, error)
-    return eqx.branched_error_if(x, failed, index, tuple(messages))
+    codes = jnp.asarray([_check_target.code_for(m, error) if m else -1 for m in messages], jnp.int32)
+    failed_codes = jnp.where(failed, codes[index], jnp.int32(-1))
+    leaves, tree = jax.tree.flatten(x)
+
+    def on_cpu(failed_codes, *leaves):
+        return jax.tree.unflatten(tree, _check_target.checked(leaves, failed_codes))
+
+    def elsewhere(failed_codes, *leaves):
+        return eqx.branched_error_if(jax.tree.unflatten(tree, leaves), failed, index, messages)
+
+    return jax.lax.platform_dependent(failed_codes, *leaves, cpu=on_cpu, default=elsewhere)
 
 
 class _HostCheckError(RuntimeError):
@@ -93,10 +120,27 @@ class _HostCheckError(RuntimeError):
 def checked_pure_callback(callback: Callable, result_shape_dtypes, *args, **kwargs):
     """``jax.pure_callback(callback, result_shape_dtypes, *args, **kwargs)`` where an exception
     raised by ``callback`` reaches the caller as that exception's type and message (through
-    :func:`documented_errors`)."""
+    :func:`documented_errors`).
+
+    On CPU the callback reports the failure instead of raising it (its outputs are then
+    placeholders) and the FFI check of :mod:`._check_target` fails the program with the message;
+    elsewhere the callback raises. ``vmap_method`` may only be ``"sequential"`` (or absent): the
+    placeholders have the shapes of ``result_shape_dtypes``.
+    """
+    if kwargs.get("vmap_method") not in (None, "sequential"):
+        raise ValueError(f"checked_pure_callback: vmap_method must be 'sequential', not {kwargs['vmap_method']!r}")
+
+    def reporting(*call_args, **call_kwargs):
+        try:
+            return callback(*call_args, **call_kwargs), np.int32(-1)
+        except Exception as exception:
+            message = str(exception)
+            _register(message, type(exception))
+            placeholders = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), result_shape_dtypes)
+            return placeholders, np.int32(_check_target.code_for(message, type(exception)))
 
     @functools.wraps(callback)
-    def run(*call_args, **call_kwargs):
+    def raising(*call_args, **call_kwargs):
         try:
             return callback(*call_args, **call_kwargs)
         except Exception as exception:
@@ -104,7 +148,15 @@ def checked_pure_callback(callback: Callable, result_shape_dtypes, *args, **kwar
             _register(message, type(exception))
             raise _HostCheckError(message) from exception
 
-    return jax.pure_callback(run, result_shape_dtypes, *args, **kwargs)
+    def on_cpu(*args):
+        out, code = jax.pure_callback(reporting, (result_shape_dtypes, jax.ShapeDtypeStruct((), jnp.int32)), *args, **kwargs)
+        leaves, tree = jax.tree.flatten(out)
+        return jax.tree.unflatten(tree, _check_target.checked(leaves, code))
+
+    def elsewhere(*args):
+        return jax.pure_callback(raising, result_shape_dtypes, *args, **kwargs)
+
+    return jax.lax.platform_dependent(*args, cpu=on_cpu, default=elsewhere)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -125,6 +177,10 @@ _TRANSLATED_TYPES = (jax.errors.JaxRuntimeError, _equinox_runtime_error(), Value
 
 def _recorded_message(text: str) -> str | None:
     """The recorded message a runtime-error text carries (``None``: not one of our checks)."""
+    for prefix in _check_target.status_prefixes():  # the FFI check: the text is the message
+        message = text.partition(prefix)[2]
+        if message in _REGISTERED:
+            return message
     if _EQUINOX_MARKER not in text and _CALLBACK_MARKER not in text and "EquinoxRuntimeError: " not in text:
         return None
     try:  # equinox keeps the message of the check that failed last
@@ -193,21 +249,51 @@ def _leave(thread: int) -> None:
 
 
 class documented_errors:  # noqa: N801 - used like a function: ``with documented_errors():``
-    """Context manager: a failed runtime check in the body raises its documented type (see the
-    module docstring); other exceptions pass through unchanged."""
+    """Context manager (or decorator): a failed runtime check of a geomjax op in the body raises
+    its documented type with the op's message (see the module docstring); other exceptions pass
+    through unchanged.
+
+    geomjax's own entry points and torch_bridge do this already; wrap a call of your own jitted
+    function to get the same, instead of JAX's runtime error. Block on the results inside the
+    body (XLA may finish a CPU program after the call returns); as a decorator it blocks for you.
+
+    Example:
+        >>> import jax, jax.numpy as jnp, geomjax
+        >>> controls = jnp.array([[0.0, 0.0], [1.0, 0.0], [1.0, 0.0], [0.0, 1.0]])  # a duplicate
+        >>> step = jax.jit(lambda c: geomjax.radial_basis_function_deform_points(c, c, jnp.ones_like(c)))
+        >>> with geomjax.documented_errors():
+        ...     jax.block_until_ready(step(controls))
+        Traceback (most recent call last):
+        RuntimeError: radial_basis_function_deform_points: the thin-plate-spline fit system is singular ...
+    """
 
     __slots__ = ("_thread",)
+
+    def __call__(self, function: Callable) -> Callable:
+        @functools.wraps(function)
+        def wrapper(*args, **kwargs):
+            with documented_errors():
+                return _ready(function(*args, **kwargs))
+
+        return wrapper
 
     def __enter__(self) -> None:
         self._thread = _enter()
 
-    def __exit__(self, kind, exception, traceback) -> bool:
+    def __exit__(self, kind, exception, traceback) -> Literal[False]:
         _leave(self._thread)
         if exception is not None and isinstance(exception, _TRANSLATED_TYPES):
             translated = translate_runtime_error(exception)
             if translated is not None:
                 raise translated from None
         return False
+
+
+def _ready(result):
+    """``result`` once computed: XLA runs larger CPU programs asynchronously, and a check that
+    fails after the call returned would reach the caller untranslated, at first use. Tracers
+    (the call was traced by an enclosing transform) pass through."""
+    return jax.block_until_ready(result)
 
 
 def raises_documented_errors(function: Callable) -> Callable:
@@ -218,7 +304,7 @@ def raises_documented_errors(function: Callable) -> Callable:
     def wrapper(*args, **kwargs):
         thread = _enter()
         try:
-            return function(*args, **kwargs)
+            return _ready(function(*args, **kwargs))
         except _TRANSLATED_TYPES as exception:
             translated = translate_runtime_error(exception)
             if translated is None:

@@ -3,9 +3,11 @@
 Every data-dependent check that can only fail while a compiled program runs must reach an eager
 geomjax caller, and every torch_bridge caller (forward and backward, eager path and custom-op
 kernel), as its documented type with the op's message as the whole message, and print nothing to
-stderr (DESIGN.md, "Validation and errors"). Inside a user's own ``jax.jit`` it stays JAX's (or
-equinox's) runtime error, which still carries the message.
+stderr (DESIGN.md, "Validation and errors"). Inside a user's own ``jax.jit`` it stays JAX's
+runtime error, whose text on CPU is the XLA status followed by the op's message.
 """
+
+import re
 
 import jax
 import jax.numpy as jnp
@@ -235,11 +237,57 @@ def test_shrinkwrap_runtime_checks(capfd, case):
             implementation="torch")  # fmt: skip
 
 
-def test_user_jit_still_raises_with_the_message():
+def _user_jit_cases():
+    """(expected documented type, message fragment, a function of no arguments that runs the op
+    inside a user's own ``jax.jit``) for checks of each kind (index range, finiteness, singular
+    fit, non-convergence, host callback)."""
+    sobolev_points, sobolev_cells = _sobolev_mesh()
+    rbf = jax.jit(lambda c: geomjax.radial_basis_function_deform_points(c, c, jnp.ones_like(c)))
+    shrinkwrap = jax.jit(lambda p: geomjax.shrinkwrap_points(p, jnp.asarray(TETRA), jnp.asarray(TETRA_FACES), implementation="jax"))
+    sdf = jax.jit(lambda f: geomjax.signed_distance_field(jnp.asarray(TETRA), f, jnp.asarray(POINTS), implementation="jax"))
+    sobolev = jax.jit(lambda d: geomjax.sobolev_deform_points(jnp.asarray(sobolev_points), jnp.asarray(sobolev_cells), d, max_iterations=1, **SOBOLEV))
+
+    def host(x):
+        if np.min(x) < 0:
+            raise ValueError("toy: host values must be >= 0")
+        return x
+
+    callback = jax.jit(lambda x: checked_pure_callback(host, jax.ShapeDtypeStruct(x.shape, x.dtype), x) * 2)
+    return {
+        "rbf singular": (RuntimeError, "radial_basis_function_deform_points: the thin-plate-spline fit system is singular", lambda: rbf(jnp.asarray(RBF_CONTROLS))),
+        "shrinkwrap finite": (ValueError, "shrinkwrap_points: points must be finite", lambda: shrinkwrap(jnp.full((2, 3), jnp.inf))),
+        "sdf indices": (ValueError, r"signed_distance_field: mesh_indices must lie in \[0, 4\)", lambda: sdf(jnp.asarray(BAD_FACES))),
+        "sobolev convergence": (RuntimeError, "sobolev_deform_points: .*did not converge within 1 iterations", lambda: sobolev(jnp.asarray(_rough(sobolev_points.shape, 1)))),
+        "host callback": (ValueError, "toy: host values must be >= 0", lambda: callback(-jnp.ones(2))),
+    }
+
+
+@pytest.mark.parametrize("case", sorted(_user_jit_cases()))
+def test_user_jit_error_starts_with_the_message(capfd, case):
+    # Inside a user's own jax.jit no geomjax code runs when the check fails, so the error stays
+    # JAX's; on CPU its text is the XLA status and then the op's message, with nothing printed.
+    error, match, run = _user_jit_cases()[case]
+    capfd.readouterr()
+    for _ in range(2):  # a first run (JaxRuntimeError) and a cached one (C++ dispatch: ValueError)
+        with pytest.raises((jax.errors.JaxRuntimeError, ValueError)) as info:
+            jax.block_until_ready(run())
+        status = "INVALID_ARGUMENT" if error is ValueError else "FAILED_PRECONDITION"
+        assert re.match(f"{status}: {match}", str(info.value)), str(info.value)
+        assert "Traceback" not in str(info.value) and "equinox" not in str(info.value)
+    assert capfd.readouterr().err == ""
+    # geomjax.documented_errors() around the user's call gives the documented type.
+    _expect(capfd, error, f"^{match}", geomjax.documented_errors()(lambda: jax.block_until_ready(run())))
+
+
+def test_checks_under_user_jit_keep_the_values_and_gradients():
     run = jax.jit(lambda p: geomjax.shrinkwrap_points(p, jnp.asarray(TETRA), jnp.asarray(TETRA_FACES), implementation="jax"))
-    with pytest.raises(Exception, match="points must be finite"):
-        jax.block_until_ready(run(jnp.full((2, 3), jnp.inf)))
-    np.testing.assert_array_equal(np.isfinite(run(jnp.asarray(POINTS))), True)
+    reference = geomjax.shrinkwrap_points(jnp.asarray(POINTS), jnp.asarray(TETRA), jnp.asarray(TETRA_FACES), implementation="jax")
+    np.testing.assert_array_equal(run(jnp.asarray(POINTS)), reference)
+    loss = lambda p: jnp.sum(geomjax.shrinkwrap_points(p, jnp.asarray(TETRA), jnp.asarray(TETRA_FACES), implementation="jax") ** 2)
+    np.testing.assert_allclose(jax.jit(jax.grad(loss))(jnp.asarray(POINTS)), jax.grad(loss)(jnp.asarray(POINTS)), rtol=0, atol=0)
+    # The check fails the program when only the gradient is used, too.
+    with pytest.raises((jax.errors.JaxRuntimeError, ValueError), match="^INVALID_ARGUMENT: shrinkwrap_points: points must be finite"):
+        jax.block_until_ready(jax.jit(jax.grad(loss))(jnp.full((2, 3), jnp.inf)))
 
 
 # ---------------------------------------------------------------------------------------------
