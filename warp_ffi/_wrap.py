@@ -19,9 +19,12 @@ a kernel adds into (adjoint scatters) are passed as in/out buffers that the call
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import os
 import re
+import sys
+import tempfile
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -31,10 +34,48 @@ import jax.numpy as jnp
 import numpy as np
 import warp
 
+
+def _cuda_driver_loads() -> bool:
+    """Whether the NVIDIA driver library that ``warp.init`` looks for can be loaded."""
+    names = ("nvcuda.dll",) if sys.platform == "win32" else ("libcuda.so", "libcuda.so.1")
+    for name in names:
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+_NO_DRIVER_WARNING = re.compile(r"Warp CUDA warning: Could not find or load the NVIDIA CUDA driver\.[^\n]*\n?")
+
+
+def _init_warp() -> None:
+    """``warp.init()``, without the warning Warp's C library writes to stderr on every import on
+    a machine that has no CUDA driver (where that is expected, not news). Anything else it
+    writes is passed on."""
+    if _cuda_driver_loads():
+        warp.init()
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            warp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        captured.seek(0)
+        rest = _NO_DRIVER_WARNING.sub("", captured.read().decode(errors="replace"))
+    if rest:
+        sys.stderr.write(rest)
+
+
 # Warp 1.19 has no ``config.quiet``: the log level keeps the init banner and module-load
 # messages off stdout (they would break doctests and pollute benchmark output).
 warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
-warp.init()
+_init_warp()
 
 WARP_SCALAR = {jnp.dtype(jnp.float32): warp.float32, jnp.dtype(jnp.float64): warp.float64}
 
