@@ -25,6 +25,7 @@ from __future__ import annotations
 import ctypes
 import math
 import threading
+import zlib
 from collections.abc import Sequence
 
 import jax
@@ -35,23 +36,26 @@ __all__ = ["checked", "code_for", "status_prefixes"]
 
 _TARGET = "geomjax_failed_check"
 
-# id -> message, and back; ids are allocated once per distinct message and never reused, so the
-# handler (which may run on an XLA thread) only ever reads entries that exist.
-_MESSAGES: list[str] = []
-_IDS: dict[str, int] = {}
+# id -> message. An id is a hash of the message, not a counter: a compiled program embeds the
+# ids of its checks as constants, and JAX's persistent compilation cache hands that program to
+# other processes, which must read the same message for the same id (the message is recorded
+# again when the program is traced there, before the cache is consulted). The handler, which may
+# run on an XLA thread, only reads entries that exist.
+_MESSAGES: dict[int, str] = {}
 _LOCK = threading.Lock()
+_ID_BITS = 30  # 2 * id + 1 stays a non-negative int32
 
 
 def _message_id(message: str) -> int:
-    """The id ``codes`` carry for ``message`` (allocated on first use)."""
-    known = _IDS.get(message)
-    if known is not None:
-        return known
-    with _LOCK:
-        if message not in _IDS:
-            _MESSAGES.append(message)
-            _IDS[message] = len(_MESSAGES) - 1
-        return _IDS[message]
+    """The id ``codes`` carry for ``message``: the same in every process."""
+    identifier = zlib.crc32(message.encode("utf-8", "replace")) & ((1 << _ID_BITS) - 1)
+    known = _MESSAGES.get(identifier)
+    if known is None:
+        with _LOCK:
+            known = _MESSAGES.setdefault(identifier, message)
+    if known != message:  # about one chance in 10**7 for a few hundred messages; never silent
+        raise RuntimeError(f"geomjax: two check messages share the id {identifier}: {known!r} and {message!r}; reword one")
+    return identifier
 
 
 # ---------------------------------------------------------------------------------------------
@@ -160,7 +164,9 @@ def _handler(frame_pointer) -> int | None:
     code = _failed_code(frame)
     if code < 0:
         return None
-    message, status = _MESSAGES[code >> 1], (_FAILED_PRECONDITION if code & 1 else _INVALID_ARGUMENT)
+    # Every traced check records its message before its program runs; the fallback is defensive.
+    message = _MESSAGES.get(code >> 1, f"geomjax: a runtime check failed (message id {code >> 1})")
+    status = _FAILED_PRECONDITION if code & 1 else _INVALID_ARGUMENT
     arguments = _ErrorCreateArgs(ctypes.sizeof(_ErrorCreateArgs), None, message.encode("utf-8", "replace"), status)
     return frame.api.contents.error_create(ctypes.byref(arguments))
 

@@ -60,6 +60,21 @@ def test_runtime_check_concrete_and_traced(capfd):
         _expect(capfd, ValueError, "^toy: x must be >= 0$", op, -jnp.ones(2))
 
 
+def test_check_codes_are_the_same_in_every_process():
+    # A compiled program embeds its checks' codes; JAX's persistent compilation cache can hand it
+    # to another process, which must map them to the same messages.
+    import subprocess
+    import sys
+
+    from geomjax._check_target import code_for
+
+    messages = ["toy: x must be >= 0", "sobolev_deform_points: did not converge"]
+    script = f"from geomjax._check_target import code_for; print([code_for(m, ValueError) for m in {messages!r}])"
+    other = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout.strip()
+    assert other == str([code_for(m, ValueError) for m in messages])
+    assert code_for(messages[0], RuntimeError) == code_for(messages[0], ValueError) + 1
+
+
 def test_host_callback_errors_translate(capfd):
     def host(x):
         if np.min(x) < 0:
