@@ -230,7 +230,8 @@ def test_dimension_rules_and_default_backend(monkeypatch):
         energy(current, rest, cells)
     surface_bending_energy(surface_current, surface_rest, jnp.asarray(OCTAHEDRON_HINGES))
     closed_surface_volume_energy(surface_current, surface_rest, jnp.asarray(OCTAHEDRON_FACES))
-    assert calls == ["simplex_strain_terms"] + ["simplex_measures"] * 3 + ["surface_bending_terms", "face_volumes"]
+    # The volume's default is JAX on CPU (its Warp path measured slower, see the registry).
+    assert calls == ["simplex_strain_terms"] + ["simplex_measures"] * 3 + ["surface_bending_terms"]
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
