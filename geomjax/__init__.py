@@ -4,6 +4,7 @@ Every op validates its inputs, then runs either its pure-JAX implementation (the
 or a Warp kernel from ``warp_ffi``; see each op's docstring for shapes, errors and backends.
 """
 
+from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._errors import documented_errors as documented_errors
 from .deform.displace import displace_points as displace_points
 from .deform.ffd import free_form_deform_points as free_form_deform_points
