@@ -92,24 +92,26 @@ def main() -> None:
     print(f"{num_designs} designs: {problem.lattice_shape} lattices on a {problem.source_points.shape[0]}-vertex sphere; "
           f"{len(devices)} {devices[0].platform} devices")
 
-    def evaluate(lattice):
+    # The meshes are arguments, not captured constants: XLA would fold constant arrays of this size
+    # at compile time (slowly, with "slow operation" alarms) and embed them in every program.
+    def evaluate(lattice, arrays):
         terms = objective_terms(geomjax, lattice, **arrays, problem=problem)
         return {"total": sum(terms.values()), **terms}
 
-    evaluate_batch = jax.vmap(evaluate)
+    evaluate_batch = jax.vmap(evaluate, in_axes=(0, None))
     unsharded = jax.jit(evaluate_batch)
 
     mesh = jax.sharding.Mesh(np.array(devices), ("design",))
     by_design = NamedSharding(mesh, PartitionSpec("design"))
-    sharded = jax.jit(jax.shard_map(evaluate_batch, mesh=mesh, in_specs=PartitionSpec("design"),
+    sharded = jax.jit(jax.shard_map(evaluate_batch, mesh=mesh, in_specs=(PartitionSpec("design"), PartitionSpec()),
                                     out_specs=PartitionSpec("design")))
     sharded_lattices = jax.device_put(lattices, by_design)
 
     start = time.perf_counter()
-    reference = jax.block_until_ready(unsharded(lattices))
+    reference = jax.block_until_ready(unsharded(lattices, arrays))
     print(f"unsharded vmap: first call (with compilation) {time.perf_counter() - start:.2f} s")
     start = time.perf_counter()
-    result = jax.block_until_ready(sharded(sharded_lattices))
+    result = jax.block_until_ready(sharded(sharded_lattices, arrays))
     print(f"sharded vmap:   first call (with compilation) {time.perf_counter() - start:.2f} s")
     print(f"result sharding: {result['total'].sharding.spec}, "
           f"{len(result['total'].sharding.device_set)} devices, per-device shard shape "
@@ -121,8 +123,8 @@ def main() -> None:
     if worst_gap > 1e-5:
         raise SystemExit("the sharded objectives differ from the unsharded ones")
 
-    unsharded_time = best_time(lambda: unsharded(lattices))
-    sharded_time = best_time(lambda: sharded(sharded_lattices))
+    unsharded_time = best_time(lambda: unsharded(lattices, arrays))
+    sharded_time = best_time(lambda: sharded(sharded_lattices, arrays))
     print(f"timings (best of 3): unsharded {unsharded_time * 1e3:.1f} ms, sharded over {len(devices)} devices "
           f"{sharded_time * 1e3:.1f} ms (ratio {unsharded_time / sharded_time:.2f}x)")
 

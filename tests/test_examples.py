@@ -28,23 +28,25 @@ TIMEOUT_S = 300
 
 @pytest.fixture(scope="module")
 def smoke_runs(tmp_path_factory):
-    """``{name: (returncode, stdout + stderr, output_dir)}`` of every example run with ``--smoke``."""
+    """``{name: (returncode, stdout + stderr, output_dir, stderr)}`` of every example run with ``--smoke``."""
     pytest.importorskip("matplotlib")
     pytest.importorskip("tqdm")
     names = [name for name in EXAMPLES if name != "shape_optimization_torch" or importlib.util.find_spec("torch")]
     # Without the caller's XLA_FLAGS the sharding example creates its 4 host devices itself.
     env = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
+    # Progress bars are tqdm's only use of stderr; without them stderr must be empty.
+    env["TQDM_DISABLE"] = "1"
     processes = {}
     for name in names:
         output_dir = tmp_path_factory.mktemp(name)
         command = [sys.executable, str(REPO / "examples" / f"{name}.py"), "--smoke", "--output-dir", str(output_dir)]
-        processes[name] = (subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        processes[name] = (subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                             text=True), output_dir)
     runs = {}
     try:
         for name, (process, output_dir) in processes.items():
-            output, _ = process.communicate(timeout=TIMEOUT_S)
-            runs[name] = (process.returncode, output, output_dir)
+            output, errors = process.communicate(timeout=TIMEOUT_S)
+            runs[name] = (process.returncode, output + errors, output_dir, errors)
     finally:
         for process, _ in processes.values():
             if process.poll() is None:
@@ -56,7 +58,7 @@ def smoke_runs(tmp_path_factory):
 def _checked_run(smoke_runs, name: str) -> str:
     if name not in smoke_runs:
         pytest.skip(f"{name}.py needs torch")
-    returncode, output, output_dir = smoke_runs[name]
+    returncode, output, output_dir, _ = smoke_runs[name]
     assert returncode == 0, f"{name}.py --smoke exited with {returncode}:\n{output[-4000:]}"
     for png in EXAMPLES[name]:
         path = output_dir / png
@@ -100,3 +102,11 @@ def test_design_batch_sharding_matches_unsharded(smoke_runs):
     assert "4 cpu devices" in output or "gpu devices" in output
     gap = float(re.search(r"max relative difference (\S+)", output).group(1))
     assert gap <= 1e-5
+
+
+@pytest.mark.parametrize("name", sorted(EXAMPLES))
+def test_examples_print_nothing_to_stderr(smoke_runs, name):
+    # No Warp CUDA-driver warning, no XLA slow-operation alarm, no PyTorch fallback warning.
+    _checked_run(smoke_runs, name)
+    errors = smoke_runs[name][3]
+    assert errors == "", errors[-4000:]
