@@ -505,15 +505,16 @@ class LiftedFunction:
     def _device_of(self, leaves) -> torch.device:
         return next(x.device for x in leaves if x is not None)
 
-    def _run_forward(self, slots, leaves, statics, wrt):
-        """Outputs and (when ``wrt`` selects leaves) the residuals of their linearisation."""
+    def _run_forward(self, slots, leaves, statics, wrt, keep_residuals=True):
+        """Outputs and (when ``wrt`` selects leaves and ``keep_residuals``) the residuals of
+        their linearisation."""
         device = self._device_of(leaves)
         # A failed runtime check of geomjax (equinox.error_if, host callback) raises the op's
         # documented exception type with its message, as the eager geomjax call does.
         with documented_errors():
             with x64_for(leaves):
                 outputs, residuals = self._forward_jit(self._as_arrays(slots, leaves), statics, wrt)
-            return [to_torch(o, device) for o in outputs], [to_torch(r, device) for r in residuals]
+            return [to_torch(o, device) for o in outputs], [to_torch(r, device) for r in residuals] if keep_residuals else []
 
     def _run_pullback(self, slots, leaves, outputs, residuals, cotangents, statics, present, wrt):
         device = self._device_of(leaves)
@@ -539,7 +540,13 @@ class LiftedFunction:
         slots, statics = self._split(args)
         leaves = _flatten(slots, self.kinds) if self._has_lists else slots
         self._check_inputs(slots, leaves, args[-1])
-        outputs, _ = self._run_forward(slots, leaves, statics, (False,) * len(leaves))
+        # The same XLA program as an eager call with the same leaves requiring grad (whose forward
+        # keeps the linearisation's residuals; here they are dropped): XLA fuses a forward alone
+        # differently, and compiled and eager values should agree bitwise, not to rounding.
+        # (The kernel runs below autograd, with grad mode off: ``requires_grad`` says what the
+        # caller's leaves require.)
+        wrt = self._effective_wrt(leaves, args[-1])
+        outputs, _ = self._run_forward(slots, leaves, statics, wrt, keep_residuals=False)
         if self.num_outputs is None:
             return outputs
         return outputs[0] if self.num_outputs == 1 else tuple(outputs)
