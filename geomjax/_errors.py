@@ -55,6 +55,10 @@ _LOCK = threading.Lock()
 # Markers that identify a failed runtime check in the text JAX reports.
 _EQUINOX_MARKER = "_EquinoxRuntimeError: "
 _CALLBACK_MARKER = "_HostCheckError: "
+# XLA's CPU client reports a check that fails while it dispatches a program (an eager call whose
+# program is mostly Warp FFI calls, e.g. the Warp Sobolev solve) as ``INTERNAL: Error dispatching
+# computation: <message>``: the status is lost, the message is intact.
+_DISPATCH_PREFIX = "Error dispatching computation: "
 
 
 def _register(message: str, error: type[Exception]) -> None:
@@ -177,7 +181,7 @@ _TRANSLATED_TYPES = (jax.errors.JaxRuntimeError, _equinox_runtime_error(), Value
 
 def _recorded_message(text: str) -> str | None:
     """The recorded message a runtime-error text carries (``None``: not one of our checks)."""
-    for prefix in _check_target.status_prefixes():  # the FFI check: the text is the message
+    for prefix in (*_check_target.status_prefixes(), _DISPATCH_PREFIX):  # the FFI check: the text is the message
         message = text.partition(prefix)[2]
         if message in _REGISTERED:
             return message

@@ -184,6 +184,21 @@ def test_sobolev_non_convergence_and_breakdown(capfd):
     _expect(capfd, RuntimeError, "breakdown", torch_bridge.sobolev_deform_points, _t(points), _t(cells), _t(broken), **SOBOLEV)
 
 
+@pytest.mark.parametrize("implementation", ["jax", "warp", None])
+def test_sobolev_non_convergence_reads_the_same_on_every_backend(capfd, implementation):
+    # An eager Warp solve on a mesh of this size fails while XLA dispatches the program, which XLA
+    # reports as "INTERNAL: Error dispatching computation: <message>"; it must still arrive as the
+    # documented RuntimeError, eager and through torch_bridge.
+    sphere = geomjax.icosphere(3)
+    points, cells = np.asarray(sphere.points, np.float64), np.asarray(sphere.cells)
+    displacement = 0.1 * _rough(points.shape, 3)
+    options = {"length_scale": 0.5, "max_iterations": 2, "implementation": implementation}
+    message = "^sobolev_deform_points: the Jacobi-PCG solve did not converge within 2 iterations"
+    _expect(capfd, RuntimeError, message, geomjax.sobolev_deform_points, jnp.asarray(points), jnp.asarray(cells),
+            jnp.asarray(displacement), **options)  # fmt: skip
+    _expect(capfd, RuntimeError, message, torch_bridge.sobolev_deform_points, _t(points), _t(cells), _t(displacement), **options)
+
+
 def test_sobolev_adjoint_non_convergence_in_backward(capfd):
     # A constant displacement is solved by the initial guess; the adjoint solve for a rough
     # cotangent is not, and must raise in backward rather than return an inexact gradient.
