@@ -38,17 +38,9 @@ FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive
 DEVICES = ["cpu", pytest.param("gpu", marks=pytest.mark.gpu)]
 
 
-# Confirmed library bugs (see the reasons); strict, so a fix turns them into failures to remove.
-_VOXEL_CENTRE = (
-    "warp_ffi/voxel.py::_row_kernel classifies an unmarked voxel by wp.mesh_query_point_sign_normal at its "
-    "centre, which answers 'outside' at the exact centre of a sphere (many equidistant faces): "
-    "mesh_to_voxel_fraction(icosphere(1), origin=[-0.9]*3, voxel_size=0.6, grid_dims=(3, 3, 3), "
-    "implementation='warp')[1, 1, 1] is 0.0, JAX gives 1.0 (the docstring promises 1)"
-)
-XFAIL = {
-    "mesh_to_voxel_fraction-warp-f32-cpu": _VOXEL_CENTRE,
-    "mesh_to_voxel_fraction-warp-f64-cpu": _VOXEL_CENTRE,
-}
+# Confirmed library bugs, xfail(strict=True) with the reason: a fix turns them into failures to
+# remove. None at present.
+XFAIL: dict[str, str] = {}
 
 
 def param(*values, id):
@@ -340,6 +332,12 @@ def test_jit_equals_eager(name, implementation):
 def test_vmap_equals_loop(name, implementation):
     c = case(name, "f64")
     if not capabilities(name, implementation).vmap or c.batched is None:
+        # Skipped for what the registry declares (an eager-only op, whose output size depends on
+        # the data): the case table agrees, and vmap raises the documented TypeError.
+        assert c.batched is None and not capabilities(name, implementation).vmap, "case table and registry disagree"
+        stacked = jnp.stack([c.arrays[0]] * 2)
+        with pytest.raises(TypeError, match="runs eagerly"):
+            jax.vmap(lambda first: c.call(first, *c.arrays[1:], implementation=implementation))(stacked)
         pytest.skip(f"{name} ({implementation}) is not vmappable (registry capabilities)")
     f = compiled(name, "f64", implementation)
     batched = jax.vmap(f, in_axes=c.in_axes)(*c.batched)

@@ -16,8 +16,12 @@ Inside tests query with a radius that always reaches the mesh (the distance to t
 centre plus its half diagonal), so a grid window deep inside a mesh reads as inside, unlike the
 reference's ``voxel_size * max(grid_dims)`` radius.
 
-Closed meshes. The state comes from the angle-weighted pseudo-normal sign
-(``mesh_query_point_sign_normal``). Along a row, consecutive unmarked voxels share their state
+Every inside test is the fast winding number (``mesh_query_point_sign_winding_number``, mesh
+built with ``support_winding_number=True``) against ``params[4]`` (0.5 for closed meshes), as in
+the JAX path. The angle-weighted pseudo-normal sign used before answered "outside" at the exact
+centre of a sphere, where many faces are equally close, and near self-intersections.
+
+Closed meshes. Along a row, consecutive unmarked voxels share their state
 (the segment between their centres crosses no triangle), so only the first of each run is
 queried. In a marked voxel only the centre is queried; a sample's state is the centre's flipped
 by the parity of the triangles that the segment centre->sample crosses, counted against the
@@ -27,9 +31,8 @@ a segment through a shared edge or vertex is counted exactly once. A centre with
 ``2**-10`` voxel sizes of the surface, where the sign of its side could be rounded away, falls
 back to one query per sample. This is ~8x faster than a query per sample (measured at 64^3).
 
-Open meshes use the fast winding number (``mesh_query_point_sign_winding_number``, mesh built
-with ``support_winding_number=True``): it varies continuously off the surface, so every unmarked
-centre and every sample is queried.
+Open meshes: the winding number varies continuously off the surface, so every unmarked centre
+and every sample is queried.
 """
 
 from typing import no_type_check
@@ -45,7 +48,6 @@ wp.set_module_options({"enable_backward": False})
 
 __all__ = ["voxel_fractions"]
 
-SIGN_EPSILON = wp.constant(1.0e-3)  # Warp's default: ties within 1e-3 of the mean edge length
 RADIUS_PAD = wp.constant(1.0 + 2.0**-10)
 SURFACE_GUARD = wp.constant(2.0**-10)  # centre-to-surface distance, in voxel sizes, below which samples are queried
 MARK_SLACK = wp.constant(2.0**-16)  # widening of the overlap test, in voxel sizes
@@ -114,13 +116,10 @@ def _weight_total(num_samples: int, strata: int):
 
 @wp.func
 @no_type_check
-def _query_inside(mesh: wp.uint64, p: wp.vec3, centre: wp.vec3, reach: float, open_mesh: int, accuracy: float, threshold: float):
+def _query_inside(mesh: wp.uint64, p: wp.vec3, centre: wp.vec3, reach: float, accuracy: float, threshold: float):
     """``(inside, distance to the surface)``; the radius always reaches the mesh."""
     radius = (wp.length(p - centre) + reach) * RADIUS_PAD
-    if open_mesh != 0:
-        q = wp.mesh_query_point_sign_winding_number(mesh, p, radius, accuracy, threshold)
-        return q.result and q.sign < 0.0, wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
-    q = wp.mesh_query_point_sign_normal(mesh, p, radius, SIGN_EPSILON)
+    q = wp.mesh_query_point_sign_winding_number(mesh, p, radius, accuracy, threshold)
     return q.result and q.sign < 0.0, wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
 
 
@@ -142,11 +141,11 @@ def _edge_plane(p: wp.vec3, q: wp.vec3, p_index: int, q_index: int):
 @no_type_check
 def _queried_fraction(
     mesh: wp.uint64, lower: wp.vec3, size: float, voxel: wp.uint32, seed: wp.uint32, num_samples: int, strata: int,
-    centre: wp.vec3, reach: float, open_mesh: int, accuracy: float, threshold: float,
+    centre: wp.vec3, reach: float, accuracy: float, threshold: float,
 ):  # fmt: skip
     total = int(0)
     for s in range(num_samples):
-        inside, _distance = _query_inside(mesh, _sample_point(lower, size, strata, seed, voxel, s), centre, reach, open_mesh, accuracy, threshold)
+        inside, _distance = _query_inside(mesh, _sample_point(lower, size, strata, seed, voxel, s), centre, reach, accuracy, threshold)
         if inside:
             total += _sample_weight(s, num_samples, strata)
     return float(total) / float(_weight_total(num_samples, strata))
@@ -261,19 +260,19 @@ def _row_kernel(
                     # Outside the mesh's bounding box: outside a closed mesh, no query needed.
                     run_state = 0
                 else:
-                    inside, _distance = _query_inside(mesh, mid, centre, reach, open_mesh, accuracy, threshold)
+                    inside, _distance = _query_inside(mesh, mid, centre, reach, accuracy, threshold)
                     run_state = wp.where(inside, 1, 0)
             fractions[voxel] = float(run_state)
             continue
         run_state = -1
         fraction = float(0.0)
         if open_mesh != 0:
-            fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, open_mesh, accuracy, threshold)
+            fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, accuracy, threshold)
         else:
             mid = lower + half
-            mid_inside, distance = _query_inside(mesh, mid, centre, reach, open_mesh, accuracy, threshold)
+            mid_inside, distance = _query_inside(mesh, mid, centre, reach, accuracy, threshold)
             if distance < SURFACE_GUARD * size:
-                fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, open_mesh, accuracy, threshold)
+                fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, accuracy, threshold)
             else:
                 fraction = _crossing_fraction(mesh, vertices, indices, lower, size, wp.uint32(voxel), seed, num_samples, strata, mid, mid_inside)
         fractions[voxel] = fraction
@@ -291,7 +290,7 @@ def _fractions(dtype, open_mesh: bool):
     def fractions_of(vertices, indices, params, nx, ny, nz, num_samples, strata, seed, fractions):
         marked = wp.zeros(nx * ny * nz, dtype=wp.int32, device=fractions.device)
         launch_in_chunks(_mark_kernel, 1, indices.shape[0] // 3, [vertices, indices, params, nx, ny, nz], [marked])
-        with mesh_in_call(vertices, indices, winding_number=open_mesh) as (mesh, _):
+        with mesh_in_call(vertices, indices, winding_number=True) as (mesh, _):
             inputs = [mesh.id, vertices, indices, marked, params, nx, ny, num_samples, strata, wp.uint32(seed % 2**32), int(open_mesh)]
             launch_in_chunks(_row_kernel, 1, ny * nz, inputs, [fractions], min_chunk=1)
 

@@ -61,8 +61,9 @@ def mesh_to_voxel_fraction(
     used by both backends.
 
     Inside test: ``open_mesh=False`` expects a closed, consistently oriented (watertight) mesh
-    and uses the side of the closest surface point (angle-weighted pseudo-normal sign on Warp,
-    the exact winding number ``> 0.5`` in JAX; the two agree on such meshes). ``open_mesh=True``
+    and calls a point inside where its generalized winding number exceeds 0.5 (Warp: the fast
+    Barnes-Hut approximation of accuracy ``winding_number_accuracy``; JAX: the exact sum), so the
+    centre of a sphere, equally close to many faces, is inside on both. ``open_mesh=True``
     is for open or imperfect meshes (holes, flipped or duplicated faces): a point is inside when
     the generalized winding number exceeds ``winding_number_threshold`` (Warp: the fast
     Barnes-Hut approximation of accuracy ``winding_number_accuracy``; JAX: the exact sum).
@@ -81,7 +82,8 @@ def mesh_to_voxel_fraction(
         n_samples: Monte-Carlo samples per surface voxel, integer ``>= 1``.
         seed: integer seed (used modulo ``2**32``).
         open_mesh: use the winding-number test (see above).
-        winding_number_threshold: finite real, the inside threshold of the winding number.
+        winding_number_threshold: finite real, the inside threshold of the winding number in
+            open mode (closed mode uses 0.5).
         winding_number_accuracy: positive finite real, Barnes-Hut accuracy of the Warp backend
             (larger is more accurate and slower; the JAX backend is exact and ignores it).
         implementation: ``"warp"``, ``"jax"`` (also ``"torch"``) or ``None``. Warp builds a BVH
@@ -143,9 +145,11 @@ def mesh_to_voxel_fraction(
         faces = consistently_oriented_faces(faces)
     origin = jax.lax.stop_gradient(origin)
     options = dict(voxel_size=voxel_size, grid=grid, n_samples=n_samples, strata=_strata(n_samples), seed=seed)
+    # Closed meshes: inside where the winding number exceeds 0.5 (it is 1 inside, 0 outside).
+    threshold = threshold if open_mesh else 0.5
     if backend == "warp":
         return _voxel_fractions_warp(vertices, faces, origin, **options, open_mesh=open_mesh, threshold=threshold, accuracy=float(winding_number_accuracy))
-    return voxel_fractions_jax(vertices, faces, origin, **options, threshold=threshold if open_mesh else 0.5)
+    return voxel_fractions_jax(vertices, faces, origin, **options, threshold=threshold)
 
 
 @functools.partial(jax.jit, static_argnames=("voxel_size", "grid", "n_samples", "strata", "seed", "open_mesh", "threshold", "accuracy"))

@@ -43,6 +43,32 @@ def test_windows_deep_inside_and_far_outside(implementation):
 
 
 @pytest.mark.parametrize("implementation", BACKENDS)
+def test_centre_of_a_sphere_equally_close_to_many_faces_is_inside(implementation):
+    # Regression: Warp's closed mode took the pseudo-normal sign at the voxel centre, which reads
+    # "outside" at the exact centre of an icosphere (many equally close faces).
+    vertices, faces = _sphere(1)
+    fractions = mesh_to_voxel_fraction(vertices, faces, [-0.9, -0.9, -0.9], 0.6, (3, 3, 3), n_samples=8, implementation=implementation)
+    assert float(fractions[1, 1, 1]) == 1.0
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+def test_self_intersecting_closed_mesh_is_the_union(implementation):
+    # Two interpenetrating closed cubes as one mesh. Voxel faces lie on the cubes' faces, so each
+    # voxel is wholly inside the union or wholly outside. A centre whose closest face belongs to
+    # the other cube (e.g. (0.625, 0.625, 0.375), 0.125 below cube B's bottom, inside cube A) is
+    # outside by that face's normal; the winding number (1 there) says inside.
+    second = CUBE + 0.5
+    vertices = jnp.asarray(np.concatenate([CUBE, second]))
+    faces = jnp.asarray(np.concatenate([CUBE_FACES, CUBE_FACES + len(CUBE)]))
+    fractions = mesh_to_voxel_fraction(vertices, faces, [-0.25, -0.25, -0.25], 0.25, (8, 8, 8), n_samples=8, implementation=implementation)
+    centres = -0.125 + 0.25 * np.arange(8)
+    z, y, x = np.meshgrid(centres, centres, centres, indexing="ij")
+    in_first = (x > 0) & (x < 1) & (y > 0) & (y < 1) & (z > 0) & (z < 1)
+    in_second = (x > 0.5) & (x < 1.5) & (y > 0.5) & (y < 1.5) & (z > 0.5) & (z < 1.5)
+    np.testing.assert_array_equal(np.asarray(fractions), (in_first | in_second).astype(np.float32))
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
 def test_z_major_layout_and_stratified_exact_half(implementation):
     # Box x in [0, 1.5] on a grid of unit voxels starting at x = 0: voxel 0 is inside, voxel 1
     # half inside (the box face lies on a sub-cube boundary, so stratified samples give exactly
