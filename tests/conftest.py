@@ -4,12 +4,24 @@ import gc
 import os
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+# JAX's persistent compilation cache for the test session, shared by the xdist workers and the
+# subprocesses that tests start (they inherit the environment): a program compiled once, by any
+# of them, is loaded rather than compiled again (after a cache clear below, by the other worker,
+# in a later run). Under the checkout's ignored .cache/, so a clean clone starts empty, as CI does.
+_CACHE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".cache", "jax-tests")
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _CACHE_DIR)
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+# Compiling, not running, is the suite's cost: its programs are small and each runs a few times.
+# XLA's cheap optimisation level (LLVM without its expensive passes; the same HLO, the same IEEE
+# semantics, no fast math) roughly halves every compile. The example scripts, the README demo and
+# the sharding subprocess compile at the default level, so optimised programs are exercised too.
+jax.config.update("jax_disable_most_optimizations", True)
 
 
 def _has_gpu() -> bool:
@@ -19,7 +31,15 @@ def _has_gpu() -> bool:
         return False
 
 
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` deselects by marker
 def pytest_collection_modifyitems(config, items):
+    # The quick tier (tests/quick_tier.py): mark the tests it names with the op and kind they cover.
+    from tests.quick_tier import quick_tests
+
+    quick = quick_tests()
+    for item in items:
+        for op, kind in quick.get(item.nodeid, ()):
+            item.add_marker(pytest.mark.quick(op=op, kind=kind))
     if _has_gpu():
         return
     skip = pytest.mark.skip(reason="needs a CUDA device")
@@ -28,15 +48,90 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _release_compiled_executables():
-    """Drop JAX's compiled executables after every test module.
+def _memory_map_count() -> int:
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return maps.read().count(b"\n")
+    except OSError:  # not Linux: no per-process map limit to watch
+        return 0
+
+
+def _memory_map_limit() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as limit:
+            return int(limit.read())
+    except (OSError, ValueError):
+        return 65530
+
+
+def _resident_bytes() -> int:
+    try:
+        with open("/proc/self/statm") as statm:
+            return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+# Compiled programs are dropped once the process holds half of the kernel's mapping limit, or
+# 4 GiB resident (two workers on a 24 GiB machine, with room for the subprocesses they start).
+_MAP_BUDGET = _memory_map_limit() // 2
+_RESIDENT_BUDGET = 4 * 2**30
+
+
+@pytest.fixture(autouse=True)
+def _release_compiled_executables_when_near_a_limit():
+    """Drop JAX's compiled executables after a test that leaves the process near a limit.
 
     Each XLA CPU executable keeps a few anonymous memory mappings for its JIT-compiled code, and
-    the suite compiles tens of thousands of programs. Kept for the whole session they approach
-    Linux's per-process limit (``vm.max_map_count``, 65530 by default), where the next
-    compilation crashes the interpreter (CI saw SIGSEGV/SIGABRT inside ``backend_compile``).
+    the suite compiles thousands of programs. Kept for the whole session they reach Linux's
+    per-process limit (``vm.max_map_count``, 65530 by default), where the next compilation crashes
+    the interpreter (SIGSEGV/SIGABRT inside ``backend_compile``; one module alone, torch_bridge's
+    op tests, did). Dropping them only when needed, rather than after every module, keeps the
+    programs that later modules share (the op case table's). Both readings cost microseconds.
     """
     yield
-    jax.clear_caches()
-    gc.collect()
+    if _memory_map_count() > _MAP_BUDGET or _resident_bytes() > _RESIDENT_BUDGET:
+        jax.clear_caches()
+        gc.collect()
+
+
+# ---------------------------------------------------------------------------------------------
+# The suite's cost in XLA compilations, printed after the test summary (issue "Minutes, not
+# hours": most of the suite's time is compiling, so this is the figure to keep down).
+# ---------------------------------------------------------------------------------------------
+
+_COMPILES = {"programs": 0, "seconds": 0.0, "cache_hits": 0}
+
+
+def _count_compile(event: str, duration: float, **_) -> None:
+    if event == "/jax/core/compile/backend_compile_duration":
+        _COMPILES["programs"] += 1
+        _COMPILES["seconds"] += duration
+
+
+def _count_cache_hit(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _COMPILES["cache_hits"] += 1
+
+
+jax.monitoring.register_event_duration_secs_listener(_count_compile)
+jax.monitoring.register_event_listener(_count_cache_hit)
+
+
+def pytest_sessionfinish(session):
+    workeroutput = getattr(session.config, "workeroutput", None)
+    if workeroutput is not None:  # an xdist worker: report to the controller
+        workeroutput["xla_compiles"] = dict(_COMPILES)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    for key, value in getattr(node, "workeroutput", {}).get("xla_compiles", {}).items():
+        _COMPILES[key] += value
+
+
+def pytest_terminal_summary(terminalreporter):
+    terminalreporter.write_line(
+        f"XLA compilations: {_COMPILES['programs']} programs, {_COMPILES['seconds']:.0f} s of compile time "
+        f"(persistent-cache hits among them: {_COMPILES['cache_hits']})"
+    )

@@ -21,7 +21,20 @@ MODULES = sorted(
 )
 
 
+@pytest.fixture
+def _jax_cache_config_restored():
+    """``enable_compilation_cache``'s example sets JAX's global cache directory to a temporary one;
+    without this the rest of the worker's session would compile into it."""
+    import jax
+
+    saved = {name: getattr(jax.config, name) for name in ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")}
+    yield
+    for name, value in saved.items():
+        jax.config.update(name, value)
+
+
 @pytest.mark.parametrize("module_name", MODULES)
+@pytest.mark.usefixtures("_jax_cache_config_restored")
 def test_docstring_examples(module_name):
     module = importlib.import_module(module_name)
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE, verbose=False)

@@ -18,6 +18,8 @@ pytest.importorskip("warp")
 from tests.sharding_cases import CASES, NUM_DEVICES
 
 REPO = Path(__file__).resolve().parents[1]
+# One worker runs the whole module (``--dist loadgroup``): its module fixture starts the subprocesses once.
+pytestmark = pytest.mark.xdist_group("sharding")
 
 
 @pytest.fixture(scope="module")
@@ -26,6 +28,9 @@ def results(tmp_path_factory):
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={NUM_DEVICES}".strip()
     env["JAX_PLATFORMS"] = "cpu"
+    # XLA's cheap optimisation level, as in the test session (tests/conftest.py): compiling the
+    # sharded programs is this subprocess's whole cost.
+    env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
     run = subprocess.run(
         [sys.executable, "-m", "tests.sharding_cases", str(path)],
         cwd=REPO,
