@@ -17,10 +17,15 @@ import torch
 
 import geomjax
 import torch_bridge
+from geomjax._registry import REGISTRY
 from torch_bridge._ops import OPS
 
 OP_BY_NAME = {op.name: op for op in OPS}
 NAMES = [op.name for op in OPS]
+
+
+# One point count (n=4) for every test of the module: each distinct shape is another set of
+# compiled programs (forward, VJP, second order) that every run pays for.
 
 
 def _rand(gen, shape, dtype, scale=1.0, shift=0.0):
@@ -31,7 +36,7 @@ def _randn(gen, shape, dtype, scale=1.0):
     return (torch.randn(shape, generator=gen, dtype=torch.float64) * scale).to(dtype)
 
 
-def displace_case(dtype, batch=(), n=5, **_):
+def displace_case(dtype, batch=(), n=4, **_):
     gen = torch.Generator().manual_seed(1)
     return {
         "points": _randn(gen, (*batch, n, 3), dtype),
@@ -40,7 +45,7 @@ def displace_case(dtype, batch=(), n=5, **_):
     }
 
 
-def morph_case(dtype, batch=(), n=6, controls=3, **_):
+def morph_case(dtype, batch=(), n=4, controls=3, **_):
     gen = torch.Generator().manual_seed(2)
     return {
         "points": _rand(gen, (*batch, n, 3), dtype),
@@ -51,7 +56,7 @@ def morph_case(dtype, batch=(), n=6, controls=3, **_):
     }
 
 
-def rbf_case(dtype, batch=(), n=6, controls=5, **_):
+def rbf_case(dtype, batch=(), n=4, controls=5, **_):
     gen = torch.Generator().manual_seed(3)
     corners = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.0]], dtype=torch.float64)
     layout = torch.cat([corners, torch.rand((max(controls - 5, 0), 3), generator=gen, dtype=torch.float64)])[:controls]
@@ -65,7 +70,7 @@ def rbf_case(dtype, batch=(), n=6, controls=5, **_):
     }
 
 
-def ffd_case(dtype, batch=(), n=6, **_):
+def ffd_case(dtype, batch=(), n=4, **_):
     gen = torch.Generator().manual_seed(4)
     return {
         "points": _rand(gen, (*batch, n, 3), dtype, 1.2, -0.1),  # some points outside the box
@@ -112,7 +117,7 @@ def sobolev_case(dtype, batch=(), **_):
     }
 
 
-def shrinkwrap_case(dtype, batch=(), n=6, **_):
+def shrinkwrap_case(dtype, batch=(), n=4, **_):
     # Points around a coarse sphere (a single target shared by every batch entry).
     gen = torch.Generator().manual_seed(12)
     directions = _randn(gen, (*batch, n, 3), torch.float64)
@@ -143,21 +148,8 @@ CASES = {
 }
 # Ops with per-point weights: the deformations x' = x + w u (the weight and empty-input tests).
 WEIGHTED = [name for name in CASES if "point_weights" in CASES[name](torch.float64)]
-# Backends geomjax registers for each op (the bridge adds "torch" -> "jax").
-IMPLEMENTATIONS = {
-    "displace_points": ("jax",),
-    "morph_points": ("jax", "warp"),
-    "radial_basis_function_deform_points": ("jax", "warp"),
-    "free_form_deform_points": ("jax", "warp"),
-    "sobolev_deform_points": ("jax", "warp"),
-    "simplex_strain_energy": ("jax", "warp"),
-    "simplex_measure_energy": ("jax", "warp"),
-    "total_measure_energy": ("jax", "warp"),
-    "simplex_inversion_energy": ("jax", "warp"),
-    "surface_bending_energy": ("jax", "warp"),
-    "closed_surface_volume_energy": ("jax", "warp"),
-    "shrinkwrap_points": ("jax", "warp"),
-}
+# Backends geomjax registers for each op, read from the registry (the bridge adds "torch" -> "jax").
+IMPLEMENTATIONS = {name: tuple(REGISTRY[name].backends) for name in NAMES}
 # A value each op rejects with ValueError (None: the op has no such option).
 BAD_OPTION_VALUES = {
     "displace_points": None,
@@ -179,7 +171,7 @@ SHARED_COMPANIONS = {"shrinkwrap_points"}
 # Tensor parameters that are configuration, not design variables.
 NON_DIFFERENTIABLE = {"free_form_deform_points": ("origin", "extent")}
 
-IMPLEMENTATION_PARAMS = [(name, impl) for name in NAMES for impl in IMPLEMENTATIONS.get(name, ("jax",))]
+IMPLEMENTATION_PARAMS = [(name, impl) for name in NAMES for impl in IMPLEMENTATIONS[name]]
 
 
 def public(name):
@@ -292,7 +284,7 @@ def test_gradients_equal_geomjax(name, implementation, dtype):
 
 @pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
 def test_gradcheck(name, implementation):
-    inputs = {**CASES[name](torch.float64, n=4), "implementation": implementation}
+    inputs = {**CASES[name](torch.float64), "implementation": implementation}
     names = differentiable(name, inputs)
     tensors = [inputs[k].detach().clone().requires_grad_() for k in names]
     assert torch.autograd.gradcheck(function_of(name, inputs, names), tensors)
@@ -300,9 +292,10 @@ def test_gradcheck(name, implementation):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_gradgradcheck_jax_path(name):
-    inputs = {**CASES[name](torch.float64, n=3), "implementation": "jax"}
-    # Two inputs keep XLA's compile time of the second-order graphs small; gradcheck covers all.
-    names = differentiable(name, inputs)[:2]
+    inputs = {**CASES[name](torch.float64), "implementation": "jax"}
+    # Every differentiable input, as test_opcheck_backward_op's call of the VJP op: the two tests
+    # then share their second-order programs (compiling those is nearly all of their cost).
+    names = differentiable(name, inputs)
     tensors = [inputs[k].detach().clone().requires_grad_() for k in names]
     assert torch.autograd.gradgradcheck(function_of(name, inputs, names), tensors, fast_mode=True)
 
@@ -470,7 +463,7 @@ def test_ffd_box_requiring_grad_is_a_value_error():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_opcheck_forward(name):
-    base = {**CASES[name](torch.float64, n=4), "implementation": "jax"}
+    base = {**CASES[name](torch.float64), "implementation": "jax"}
     lifted = OP_BY_NAME[name].lifted
     for grad in (False, True):
         inputs = with_grad(base, differentiable(name, base) if grad else [])
@@ -481,7 +474,7 @@ def test_opcheck_forward(name):
 @pytest.mark.parametrize("name", NAMES)
 def test_opcheck_backward_op(name):
     """The autograd formula's op: the lifted VJP (its own autograd is its lifted VJP)."""
-    base = {**CASES[name](torch.float64, n=4), "implementation": "jax"}
+    base = {**CASES[name](torch.float64), "implementation": "jax"}
     inputs = with_grad(base, differentiable(name, base))
     slots, statics, requires_grad = op_arguments(name, inputs)
     output = public(name)(**inputs)
