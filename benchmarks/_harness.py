@@ -18,6 +18,9 @@ from pathlib import Path
 import jax
 
 RESULTS = Path(__file__).parent / "results"
+# A --quick run (smaller sizes, same code paths) saves ``<name>_quick.json``, never over the
+# full-size results that the README tables show.
+QUICK = "--quick" in sys.argv[1:]
 
 
 def block(x):
@@ -81,6 +84,8 @@ def report(name: str, rows: list[dict]) -> None:
     print("  ".join(k.ljust(widths[k]) for k in keys))
     for row in rows:
         print("  ".join(_fmt(row.get(k)).ljust(widths[k]) for k in keys))
+    if QUICK and not name.endswith("_quick"):
+        name = f"{name}_quick"
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps({"machine": machine(), "rows": rows}, indent=2))
 

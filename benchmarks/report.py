@@ -1,6 +1,6 @@
 """Render the saved benchmark results as Markdown tables, optionally into README.md.
 
-Usage: python benchmarks/report.py [--write-readme]
+Usage: python benchmarks/report.py [--write-readme | --quick]
 
 Each ``benchmarks/bench_*.py`` saves ``benchmarks/results/<name>.json`` (machine description and
 rows). This script prints one table per result file and, with ``--write-readme``, replaces the
@@ -32,9 +32,12 @@ def _script_for(result_name: str) -> str:
     return next((f"{s}.py" for s in scripts if result_name.startswith(s.removeprefix("bench_"))), "?")
 
 
-def render() -> str:
+def render(quick: bool = False) -> str:
+    """Markdown tables of the full-size results (``quick``: of the ``--quick`` runs instead)."""
     parts = []
     for path in sorted((HERE / "results").glob("*.json")):
+        if path.stem.endswith("_quick") != quick:
+            continue
         data = json.loads(path.read_text())
         rows, machine = data["rows"], data["machine"]
         keys = list(dict.fromkeys(k for row in rows for k in row))
@@ -50,8 +53,11 @@ def render() -> str:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--write-readme", action="store_true")
+    parser.add_argument("--quick", action="store_true", help="the tables of the --quick runs (never written to README.md)")
     args = parser.parse_args()
-    tables = render()
+    if args.quick and args.write_readme:
+        parser.error("the README shows full-size results: --quick and --write-readme exclude each other")
+    tables = render(quick=args.quick)
     print(tables)
     if args.write_readme:
         text = README.read_text()
