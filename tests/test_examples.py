@@ -17,8 +17,6 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-# One worker runs the whole module (``--dist loadgroup``): its module fixture starts the subprocesses once.
-pytestmark = pytest.mark.xdist_group("examples")
 EXAMPLES = {
     "shape_optimization_jax": ["shape_optimization_jax.png", "shape_optimization_jax_loss.png"],
     "shape_optimization_torch": ["shape_optimization_torch.png", "shape_optimization_torch_loss.png"],

@@ -15,7 +15,7 @@ def _readme_command(marker: str) -> str:
 
 def test_ci_runs_the_readme_test_command():
     command = _readme_command("test-command")
-    assert command == "bash tools/setup.sh && .venv/bin/python -m pytest -n 2 --dist loadgroup --durations=10"
+    assert command == "bash tools/setup.sh && .venv/bin/python -m pytest -n 2 --dist loadfile --durations=10"
 
 
 def test_ci_runs_the_readme_demo_command():

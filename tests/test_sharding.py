@@ -18,8 +18,6 @@ pytest.importorskip("warp")
 from tests.sharding_cases import CASES, NUM_DEVICES
 
 REPO = Path(__file__).resolve().parents[1]
-# One worker runs the whole module (``--dist loadgroup``): its module fixture starts the subprocesses once.
-pytestmark = pytest.mark.xdist_group("sharding")
 
 
 @pytest.fixture(scope="module")
