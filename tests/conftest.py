@@ -19,8 +19,9 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 # Compiling, not running, is the suite's cost: its programs are small and each runs a few times.
 # XLA's cheap optimisation level (LLVM without its expensive passes; the same HLO, the same IEEE
-# semantics, no fast math) cuts every compile. The example scripts, the README demo and the wheel check compile at the default level,
-# so optimised programs are exercised too; the sharding subprocess uses the cheap level as well.
+# semantics, no fast math) cuts every compile. The example scripts, the README demo and the wheel
+# check compile at the default level, so optimised programs are exercised too; the sharding
+# subprocess uses the cheap level as well.
 jax.config.update("jax_disable_most_optimizations", True)
 
 
