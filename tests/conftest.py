@@ -12,6 +12,38 @@ _CACHE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _CACHE_DIR)
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
+# XLA's CPU compiler emits fused loops through its MLIR fusion emitters by default; its classic
+# elemental emitter compiles the same HLO (same semantics, no fast math) in about half the time
+# (measured on the suite's combined transform programs), and compiling is the suite's cost.
+_FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+
+
+def _xla_knows(flag: str) -> bool:
+    """Whether this jaxlib's XLA accepts ``flag`` (an unknown XLA flag aborts the process).
+
+    Asked once per jaxlib version, in a subprocess, and remembered under the cache directory.
+    """
+    import importlib.metadata
+    import subprocess
+    import sys
+
+    version = importlib.metadata.version("jaxlib")
+    verdict = os.path.join(_CACHE_DIR, f"xla-flag-{flag.strip('-').replace('=', '-')}-jaxlib-{version}")
+    for answer in ("yes", "no"):
+        if os.path.exists(f"{verdict}.{answer}"):
+            return answer == "yes"
+    env = {**os.environ, "XLA_FLAGS": flag, "JAX_PLATFORMS": "cpu"}
+    probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env=env, capture_output=True, timeout=120)
+    answer = "yes" if probe.returncode == 0 else "no"
+    os.makedirs(_CACHE_DIR, exist_ok=True)
+    open(f"{verdict}.{answer}", "w").close()
+    return answer == "yes"
+
+
+if _FAST_COMPILE_FLAG.split("=")[0] not in os.environ.get("XLA_FLAGS", "") and _xla_knows(_FAST_COMPILE_FLAG):
+    # Set before JAX creates its CPU client; inherited by the subprocesses that tests start.
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FAST_COMPILE_FLAG}".strip()
+
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
@@ -101,22 +133,51 @@ def _release_compiled_executables_when_near_a_limit():
 # hours": most of the suite's time is compiling, so this is the figure to keep down).
 # ---------------------------------------------------------------------------------------------
 
-_COMPILES = {"programs": 0, "seconds": 0.0, "cache_hits": 0}
+_COMPILES = {"programs": 0, "seconds": 0.0, "cache_hits": 0, "trace_seconds": 0.0, "lower_seconds": 0.0}
+_DURATION_KEYS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace_seconds",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_seconds",
+    "/jax/core/compile/backend_compile_duration": "seconds",
+}
+# GEOMJAX_TEST_PROFILE=<file>: each worker appends one JSON line per test (its compile figures),
+# to find where the suite's compile time goes (``tools/profile_tests.py`` sums them per file).
+_PROFILE_PATH = os.environ.get("GEOMJAX_TEST_PROFILE")
+_PER_TEST = dict.fromkeys(_COMPILES, 0.0)
 
 
 def _count_compile(event: str, duration: float, **_) -> None:
-    if event == "/jax/core/compile/backend_compile_duration":
+    key = _DURATION_KEYS.get(event)
+    if key is None:
+        return
+    _COMPILES[key] += duration
+    _PER_TEST[key] += duration
+    if key == "seconds":
         _COMPILES["programs"] += 1
-        _COMPILES["seconds"] += duration
+        _PER_TEST["programs"] += 1
 
 
 def _count_cache_hit(event: str, **_) -> None:
     if event == "/jax/compilation_cache/cache_hits":
         _COMPILES["cache_hits"] += 1
+        _PER_TEST["cache_hits"] += 1
 
 
 jax.monitoring.register_event_duration_secs_listener(_count_compile)
 jax.monitoring.register_event_listener(_count_cache_hit)
+
+
+if _PROFILE_PATH:
+    import json
+    import time
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        _PER_TEST.update(dict.fromkeys(_PER_TEST, 0.0))
+        start = time.perf_counter()
+        yield
+        record = {"test": item.nodeid, "wall": time.perf_counter() - start, **_PER_TEST}
+        with open(_PROFILE_PATH, "a") as profile:
+            profile.write(json.dumps(record) + "\n")
 
 
 def pytest_sessionfinish(session):
@@ -133,6 +194,7 @@ def pytest_testnodedown(node, error):
 
 def pytest_terminal_summary(terminalreporter):
     terminalreporter.write_line(
-        f"XLA compilations: {_COMPILES['programs']} programs, {_COMPILES['seconds']:.0f} s of compile time "
-        f"(persistent-cache hits among them: {_COMPILES['cache_hits']})"
+        f"XLA compilations: {_COMPILES['programs']:.0f} programs, {_COMPILES['seconds']:.0f} s of compile time "
+        f"(persistent-cache hits among them: {_COMPILES['cache_hits']:.0f}); "
+        f"{_COMPILES['trace_seconds']:.0f} s tracing, {_COMPILES['lower_seconds']:.0f} s lowering"
     )
