@@ -6,8 +6,8 @@ a test of its own, so the full suite pays nothing extra):
 - ``value``: a hand-checked or peer-library value of the op (its own test file), on the CPU
   default backend where that test is parametrised by backend;
 - ``gradient``: the default path's VJP against central finite differences (differentiable ops);
-- ``torch_bridge``: the torch_bridge call (gradcheck for differentiable ops, equality with
-  geomjax for the others);
+- ``torch_bridge``: the torch_bridge call (gradcheck for differentiable ops, of the JAX path for
+  the ops of torch_bridge's op table; equality with geomjax for the others);
 - ``bad_input``: a wrong shape raises the documented ``ValueError``.
 
 ``tests/conftest.py`` marks the collected tests named here with ``quick(op=..., kind=...)``;
@@ -19,6 +19,9 @@ for the registry key.
 from __future__ import annotations
 
 from geomjax._registry import REGISTRY
+from torch_bridge._ops import OPS
+
+TORCH_TABLE = {op.name for op in OPS}
 
 TRANSFORMATIONS = "tests/test_transformations.py"
 
@@ -26,6 +29,8 @@ TRANSFORMATIONS = "tests/test_transformations.py"
 BY_TEMPLATE = {
     "gradient": f"{TRANSFORMATIONS}::test_grad_matches_finite_differences[{{op}}-default]",
     "torch_bridge": f"{TRANSFORMATIONS}::test_torch_gradcheck[{{op}}]",
+    # The ops of torch_bridge's op table: gradcheck of the JAX path, which every op has.
+    "torch_bridge_table": "tests/torch_bridge/test_ops.py::test_gradcheck[{op}-jax]",
     "bad_input": f"{TRANSFORMATIONS}::test_wrong_shape_is_a_value_error[{{op}}]",
 }
 
@@ -77,6 +82,8 @@ def quick_tests() -> dict[str, list[tuple[str, str]]]:
                 node = VALUE.get(op)
             elif kind == "torch_bridge" and op in TORCH_BRIDGE:
                 node = TORCH_BRIDGE[op]
+            elif kind == "torch_bridge" and op in TORCH_TABLE:
+                node = BY_TEMPLATE["torch_bridge_table"].format(op=op)
             else:
                 node = BY_TEMPLATE[kind].format(op=op)
             if node is not None:

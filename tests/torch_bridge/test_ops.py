@@ -291,8 +291,10 @@ def test_gradcheck(name, implementation):
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_gradgradcheck_jax_path(name):
-    inputs = {**CASES[name](torch.float64), "implementation": "jax"}
+def test_gradgradcheck_default(name):
+    # The default implementation: double backward is what a user's default call must support,
+    # whichever backend serves the first order (a Warp default's second order is the JAX path's).
+    inputs = CASES[name](torch.float64)
     # Every differentiable input, as test_opcheck_backward_op's call of the VJP op: the two tests
     # then share their second-order programs (compiling those is nearly all of their cost).
     names = differentiable(name, inputs)
@@ -473,8 +475,9 @@ def test_opcheck_forward(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_opcheck_backward_op(name):
-    """The autograd formula's op: the lifted VJP (its own autograd is its lifted VJP)."""
-    base = {**CASES[name](torch.float64), "implementation": "jax"}
+    """The autograd formula's op: the lifted VJP (its own autograd is its lifted VJP), on the
+    default implementation as test_gradgradcheck_default."""
+    base = CASES[name](torch.float64)
     inputs = with_grad(base, differentiable(name, base))
     slots, statics, requires_grad = op_arguments(name, inputs)
     output = public(name)(**inputs)
