@@ -50,10 +50,11 @@ import pytest  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 # Compiling, not running, is the suite's cost: its programs are small and each runs a few times.
-# XLA's cheap optimisation level (LLVM without its expensive passes; the same HLO, the same IEEE
-# semantics, no fast math) cuts every compile. The example scripts, the README demo and the wheel
-# check compile at the default level, so optimised programs are exercised too; the sharding
-# subprocess uses the cheap level as well.
+# XLA's cheap optimisation level (fewer HLO simplifications, LLVM without its expensive passes;
+# IEEE semantics, no fast math, so results may differ from the optimised program's only by
+# rounding) cuts every compile. The subprocesses that tests start (examples, sharding) use it too;
+# CI's README demo and wheel check (.ci/run) compile at the default level, so optimised programs
+# are exercised on every landing.
 jax.config.update("jax_disable_most_optimizations", True)
 
 
