@@ -10,7 +10,7 @@ points in float64 (``--quick``: 100,000 points). Times, in one process and on th
 Prints ratios (best scipy time / best time of ours; target >= 10x) and the largest difference
 from scipy's field.
 Then measures the peak resident memory of one forward AND backward pass (gradients to the points,
-controls and displacements) at 1,000,000 points x 1,000 controls for both backends, each in a
+controls and displacements) at 1,000,000 points (``--quick``: 100,000) x 1,000 controls for both backends, each in a
 fresh subprocess (target < 4 GB).
 
 Usage: ``python benchmarks/bench_rbf.py [--quick] [--no-memory]``
@@ -91,7 +91,7 @@ def main() -> None:
                 "scipy_s": scipy_s,
                 "ratio": ratio,
                 "target": TARGET_RATIO,
-                "met": ratio >= TARGET_RATIO,
+                "met": None if args.quick else ratio >= TARGET_RATIO,  # the target is for 1,000,000 points
                 "max_abs_diff_vs_scipy": error,
             }
         )
@@ -99,13 +99,13 @@ def main() -> None:
 
     if not args.no_memory:
         for implementation in ("jax", "warp"):
-            code = MEMORY_SCRIPT.format(controls=NUM_CONTROLS, points=1_000_000, implementation=implementation)
+            code = MEMORY_SCRIPT.format(controls=NUM_CONTROLS, points=num_points, implementation=implementation)
             start = time.perf_counter()
             peak = peak_rss_bytes_of(code)
             elapsed = time.perf_counter() - start
             rows.append(
                 {
-                    "case": f"peak RSS fwd+bwd C={NUM_CONTROLS} N=1000000 f64 [{implementation}]",
+                    "case": f"peak RSS fwd+bwd C={NUM_CONTROLS} N={num_points} f64 [{implementation}]",
                     "peak_rss_gb": peak / 1e9,
                     "target": MEMORY_TARGET_BYTES / 1e9,
                     "met": peak < MEMORY_TARGET_BYTES,
