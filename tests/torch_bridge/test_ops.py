@@ -242,26 +242,12 @@ def test_custom_op_is_registered(name):
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(
-    ("dtype", "batch"),
-    [(torch.float32, ()), (torch.float64, ()), (torch.float64, (2,))],
-    ids=["f32", "f64", "f64-batched"],
-)
-@pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
-def test_values_equal_geomjax(name, implementation, dtype, batch):
-    inputs = {**CASES[name](dtype, batch=batch), "implementation": implementation}
-    out = public(name)(**inputs)
-    expected = np.asarray(geomjax_reference(name, inputs))
-    assert out.dtype == dtype and tuple(out.shape) == expected.shape
-    tol = 2e-6 if dtype == torch.float32 else 1e-13  # XLA may fuse the two programs differently
-    np.testing.assert_allclose(out.numpy(), expected, rtol=tol, atol=tol)
-
-
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
 @pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
-def test_gradients_equal_geomjax(name, implementation, dtype):
+def test_values_and_gradients_equal_geomjax(name, implementation, dtype):
     base = {**CASES[name](dtype), "implementation": implementation}
     names = differentiable(name, base)
+    plain = public(name)(**base)  # no input requires grad: the forward without residuals
     inputs = with_grad(base, names)
     out = public(name)(**inputs)
     cotangent = torch.linspace(-1.0, 1.0, out.numel(), dtype=dtype).reshape(out.shape)
@@ -273,13 +259,28 @@ def test_gradients_equal_geomjax(name, implementation, dtype):
 
     @jax.jit
     def reference(xs, ct):
-        return jax.vjp(lambda *xs: fn(**dict(zip(names, xs)), **options), *xs)[1](ct)
+        # Value and VJP in one program: one compile per case, not one for each.
+        value, pullback = jax.vjp(lambda *xs: fn(**dict(zip(names, xs)), **options), *xs)
+        return value, pullback(ct)
 
-    expected = reference(tuple(arrays[k] for k in names), jnp.asarray(cotangent.numpy()))
-    tol = 2e-6 if dtype == torch.float32 else 1e-13
-    for k, g, e in zip(names, grads, expected):
+    expected_value, expected_grads = reference(tuple(arrays[k] for k in names), jnp.asarray(cotangent.numpy()))
+    expected_value = np.asarray(expected_value)
+    tol = 2e-6 if dtype == torch.float32 else 1e-13  # XLA may fuse the programs differently
+    for label, value in (("without grad", plain), ("with grad", out.detach())):
+        assert value.dtype == dtype and tuple(value.shape) == expected_value.shape, label
+        np.testing.assert_allclose(value.numpy(), expected_value, rtol=tol, atol=tol, err_msg=label)
+    for k, g, e in zip(names, grads, expected_grads):
         assert g.dtype == dtype, k
         np.testing.assert_allclose(g.numpy(), np.asarray(e), rtol=tol, atol=tol, err_msg=k)
+
+
+@pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
+def test_batched_values_equal_geomjax(name, implementation):
+    inputs = {**CASES[name](torch.float64, batch=(2,)), "implementation": implementation}
+    out = public(name)(**inputs)
+    expected = np.asarray(geomjax_reference(name, inputs))
+    assert out.dtype == torch.float64 and tuple(out.shape) == expected.shape
+    np.testing.assert_allclose(out.numpy(), expected, rtol=1e-13, atol=1e-13)
 
 
 @pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
