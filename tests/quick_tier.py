@@ -29,10 +29,11 @@ TRANSFORMATIONS = "tests/test_transformations.py"
 BY_TEMPLATE = {
     "gradient": f"{TRANSFORMATIONS}::test_grad_matches_finite_differences[{{op}}-default]",
     "torch_bridge": f"{TRANSFORMATIONS}::test_torch_gradcheck[{{op}}]",
-    # The ops of torch_bridge's op table: gradcheck of the JAX path, which every op has.
-    "torch_bridge_table": "tests/torch_bridge/test_ops.py::test_gradcheck[{op}-jax]",
     "bad_input": f"{TRANSFORMATIONS}::test_wrong_shape_is_a_value_error[{{op}}]",
 }
+# The torch_bridge entry of the ops of torch_bridge's op table: gradcheck of the JAX path, which
+# every op has.
+TORCH_TABLE_GRADCHECK = "tests/torch_bridge/test_ops.py::test_gradcheck[{op}-jax]"
 
 VALUE = {
     "displace_points": "tests/deform/test_displace.py::test_reference_example_values",
@@ -83,7 +84,7 @@ def quick_tests() -> dict[str, list[tuple[str, str]]]:
             elif kind == "torch_bridge" and op in TORCH_BRIDGE:
                 node = TORCH_BRIDGE[op]
             elif kind == "torch_bridge" and op in TORCH_TABLE:
-                node = BY_TEMPLATE["torch_bridge_table"].format(op=op)
+                node = TORCH_TABLE_GRADCHECK.format(op=op)
             else:
                 node = BY_TEMPLATE[kind].format(op=op)
             if node is not None:
