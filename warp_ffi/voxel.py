@@ -16,20 +16,33 @@ Inside tests query with a radius that always reaches the mesh (the distance to t
 centre plus its half diagonal), so a grid window deep inside a mesh reads as inside, unlike the
 reference's ``voxel_size * max(grid_dims)`` radius.
 
-Every inside test is the fast winding number (``mesh_query_point_sign_winding_number``, mesh
-built with ``support_winding_number=True``) against ``params[4]`` (0.5 for closed meshes), as in
-the JAX path. The angle-weighted pseudo-normal sign used before answered "outside" at the exact
+Every inside test compares the fast winding number (``mesh_query_point_sign_winding_number``,
+mesh built with ``support_winding_number=True``; in closed mode's marked voxels, its value plus
+signed crossings, below) with ``params[4]`` (0.5 for closed meshes), as in the JAX path. The angle-weighted pseudo-normal sign used before answered "outside" at the exact
 centre of a sphere, where many faces are equally close, and near self-intersections.
 
 Closed meshes. Along a row, consecutive unmarked voxels share their state
-(the segment between their centres crosses no triangle), so only the first of each run is
-queried. In a marked voxel only the centre is queried; a sample's state is the centre's flipped
-by the parity of the triangles that the segment centre->sample crosses, counted against the
-triangles whose boxes meet the voxel (every triangle the segment can cross). The crossing test
+(the segment between their centres crosses no triangle, so the winding number does not change),
+so only the first of each run is queried. In a marked voxel only the centre is queried, for its
+winding number rounded to an integer (away from the surface the winding number of a closed mesh
+is an integer; the fast one is within rounding of it). A sample's winding number is the centre's
+plus the signed crossings of the segment centre->sample, counted against the triangles whose
+boxes meet the voxel (every triangle the segment can cross): +1 entering a triangle from its
+front (the side ``cross(b - a, c - a)`` points to), -1 leaving through it. The sample is inside
+where that exceeds ``params[4]``. Signed counts, not the parity of the crossings flipping the
+centre's state: where parts of a mesh overlap (two interpenetrating closed parts given as one
+mesh: winding number 2 in the overlap), a sample one crossing away from a centre in the overlap
+has winding number 1 and is inside, which a parity flip reads as outside. The crossing test
 uses orientation signs of the segment against each edge computed in a canonical vertex order, so
-a segment through a shared edge or vertex is counted exactly once. A centre within
-``2**-10`` voxel sizes of the surface, where the sign of its side could be rounded away, falls
-back to one query per sample. This is ~8x faster than a query per sample (measured at 64^3).
+a segment through a shared edge or vertex is counted exactly once. A centre within ``2**-10``
+voxel sizes of the surface, where float32 rounding could put it on one side of a nearby triangle
+for the crossing test and on the other for the winding number, falls back to one query per
+sample. This is ~8x faster than a query per sample (measured at 64^3).
+
+Warp 1.19 exposes the fast winding number only behind a threshold
+(``mesh_query_point_sign_winding_number``); its value comes from Warp's native
+``wp::mesh_query_winding_number`` (the function that query calls) through ``wp.func_native``,
+next to a ``mesh_query_point_no_sign`` for the distance: the same two searches as that query.
 
 Open meshes: the winding number varies continuously off the surface, so every unmarked centre
 and every sample is queried.
@@ -52,7 +65,7 @@ RADIUS_PAD = wp.constant(1.0 + 2.0**-10)
 SURFACE_GUARD = wp.constant(2.0**-10)  # centre-to-surface distance, in voxel sizes, below which samples are queried
 MARK_SLACK = wp.constant(2.0**-16)  # widening of the overlap test, in voxel sizes
 UNIT_FROM_BITS = wp.constant(2.0**-24)
-BATCH = wp.constant(64)  # samples whose crossing parities share one 64-bit mask
+BATCH = wp.constant(64)  # samples whose crossings are counted in one pass over the voxel's triangles
 _MIX_A = wp.constant(wp.uint32(0x7FEB352D))
 _MIX_B = wp.constant(wp.uint32(0x846CA68B))
 
@@ -123,6 +136,28 @@ def _query_inside(mesh: wp.uint64, p: wp.vec3, centre: wp.vec3, reach: float, ac
     return q.result and q.sign < 0.0, wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
 
 
+@wp.func_native("return wp::mesh_query_winding_number(mesh, p, accuracy);")
+def _winding_number(mesh: wp.uint64, p: wp.vec3, accuracy: float) -> float:  # type: ignore[empty-body]
+    """Fast (Barnes-Hut) generalized winding number: the value that
+    ``mesh_query_point_sign_winding_number`` compares with its threshold, which Warp 1.19 does
+    not expose as a builtin (mesh built with ``support_winding_number=True``)."""
+    ...
+
+
+@wp.func
+@no_type_check
+def _query_winding(mesh: wp.uint64, p: wp.vec3, centre: wp.vec3, reach: float, accuracy: float):
+    """``(winding number rounded to an integer, distance to the surface)``: the same closest-point
+    search and winding number as :func:`_query_inside`. The rounding is meaningful only away
+    from the surface (callers check the distance); no point in reach reads as distance 0."""
+    radius = (wp.length(p - centre) + reach) * RADIUS_PAD
+    q = wp.mesh_query_point_no_sign(mesh, p, radius)
+    distance = float(0.0)
+    if q.result:
+        distance = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
+    return int(wp.round(_winding_number(mesh, p, accuracy))), distance
+
+
 @wp.func
 @no_type_check
 def _edge_plane(p: wp.vec3, q: wp.vec3, p_index: int, q_index: int):
@@ -155,7 +190,7 @@ def _queried_fraction(
 @no_type_check
 def _crossing_fraction(
     mesh: wp.uint64, vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), lower: wp.vec3, size: float,
-    voxel: wp.uint32, seed: wp.uint32, num_samples: int, strata: int, mid: wp.vec3, mid_inside: bool,
+    voxel: wp.uint32, seed: wp.uint32, num_samples: int, strata: int, mid: wp.vec3, mid_winding: int, threshold: float,
 ):  # fmt: skip
     slack = MARK_SLACK * size
     box_lower = lower - wp.vec3(slack, slack, slack)
@@ -172,7 +207,8 @@ def _crossing_fraction(
             dx[r] = d[0]
             dy[r] = d[1]
             dz[r] = d[2]
-        flips = wp.uint64(0)
+        # Winding number change from the centre to each sample: the signed crossings.
+        change = wp.vector(dtype=wp.int32, length=BATCH)
         query = wp.mesh_query_aabb(mesh, box_lower, box_upper)
         f = int(0)
         while wp.mesh_query_next(query, f):
@@ -184,6 +220,8 @@ def _crossing_fraction(
             c = vertices[ic] - mid
             normal = wp.cross(b - a, c - a)
             mid_height = -wp.dot(normal, a)
+            # Crossing from the back (height < 0) to the front of a face leaves the part behind it.
+            step = wp.where(mid_height < 0.0, -1, 1)
             plane_ab, flip_ab = _edge_plane(a, b, ia, ib)
             plane_bc, flip_bc = _edge_plane(b, c, ib, ic)
             plane_ca, flip_ca = _edge_plane(c, a, ic, ia)
@@ -193,10 +231,9 @@ def _crossing_fraction(
                 if (mid_height < 0.0) != (height < 0.0):
                     side_ab = (wp.dot(d, plane_ab) > 0.0) != flip_ab
                     if side_ab == ((wp.dot(d, plane_bc) > 0.0) != flip_bc) and side_ab == ((wp.dot(d, plane_ca) > 0.0) != flip_ca):
-                        flips = flips ^ (wp.uint64(1) << wp.uint64(r))
+                        change[r] += step
         for r in range(count):
-            crossed = ((flips >> wp.uint64(r)) & wp.uint64(1)) != wp.uint64(0)
-            if crossed != mid_inside:
+            if float(mid_winding + change[r]) > threshold:
                 total += _sample_weight(start + r, num_samples, strata)
     return float(total) / float(_weight_total(num_samples, strata))
 
@@ -270,11 +307,11 @@ def _row_kernel(
             fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, accuracy, threshold)
         else:
             mid = lower + half
-            mid_inside, distance = _query_inside(mesh, mid, centre, reach, accuracy, threshold)
+            mid_winding, distance = _query_winding(mesh, mid, centre, reach, accuracy)
             if distance < SURFACE_GUARD * size:
                 fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, accuracy, threshold)
             else:
-                fraction = _crossing_fraction(mesh, vertices, indices, lower, size, wp.uint32(voxel), seed, num_samples, strata, mid, mid_inside)
+                fraction = _crossing_fraction(mesh, vertices, indices, lower, size, wp.uint32(voxel), seed, num_samples, strata, mid, mid_winding, threshold)
         fractions[voxel] = fraction
 
 

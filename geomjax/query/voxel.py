@@ -88,12 +88,13 @@ def mesh_to_voxel_fraction(
             (larger is more accurate and slower; the JAX backend is exact and ignores it).
         implementation: ``"warp"``, ``"jax"`` (also ``"torch"``) or ``None``. Warp builds a BVH
             of the mesh in float32 (in the call) and samples only voxels near the surface; in
-            closed mode a sample's state is its voxel centre's state flipped by the parity of
-            the triangles crossed on the way (one BVH query per voxel instead of one per
-            sample), and runs of voxels away from the surface share one query. Open mode costs
-            one winding-number query per sample, plus a host-side orientation pass. The JAX
-            backend is a brute-force reference for small problems: it evaluates every centre and
-            sample against every triangle (O(grid x samples x F)), in the vertices' dtype.
+            closed mode a sample's winding number is its voxel centre's plus the signed
+            crossings of the triangles on the way (one BVH query per voxel instead of one per
+            sample; right where parts of the mesh overlap), and runs of voxels away from the
+            surface share one query. Open mode costs one winding-number query per sample,
+            plus a host-side orientation pass. The JAX backend is a brute-force reference for
+            small problems: it evaluates every centre and sample against every triangle
+            (O(grid x samples x F)), in the vertices' dtype.
             ``None`` picks Warp on every platform when warp-lang is installed, JAX otherwise
             (``benchmarks/bench_shrinkwrap_voxel.py`` compares it with Open3D's supersampled
             occupancy, in time and per-voxel error).

@@ -15,9 +15,7 @@ TRACED_ERRORS = (RuntimeError, ValueError)
 
 # Closed unit cube [0, 1]^3, outward normals.
 CUBE = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
-CUBE_FACES = np.array(
-    [[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [2, 3, 7], [2, 7, 6], [0, 4, 7], [0, 7, 3], [1, 2, 6], [1, 6, 5]]
-)
+CUBE_FACES = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [2, 3, 7], [2, 7, 6], [0, 4, 7], [0, 7, 3], [1, 2, 6], [1, 6, 5]])
 
 
 def _sphere(subdivisions):
@@ -66,6 +64,37 @@ def test_self_intersecting_closed_mesh_is_the_union(implementation):
     in_first = (x > 0) & (x < 1) & (y > 0) & (y < 1) & (z > 0) & (z < 1)
     in_second = (x > 0.5) & (x < 1.5) & (y > 0.5) & (y < 1.5) & (z > 0.5) & (z < 1.5)
     np.testing.assert_array_equal(np.asarray(fractions), (in_first | in_second).astype(np.float32))
+
+
+def _box_overlap(lower, upper, box_lower, box_upper):
+    """Volume of ``[lower, upper]`` (arrays of boxes, ``(..., 3)``) inside ``[box_lower, box_upper]``."""
+    return np.prod(np.clip(np.minimum(upper, box_upper) - np.maximum(lower, box_lower), 0.0, None), axis=-1)
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+def test_samples_across_an_inner_face_of_overlapping_closed_parts(implementation):
+    # Regression: Warp's closed mode flipped the voxel centre's inside state by the parity of the
+    # triangles crossed on the way to a sample. Cubes A = [0, 1]^3 and B = A + 0.25, one mesh, have
+    # winding number 2 in A & B, so a sample one crossing away from a centre in A & B (e.g.
+    # (0.375, 0.375, 0.375), 0.125 inside B's lower faces) has winding number 1 and is inside.
+    # Every face lies on an odd multiple of 1/8 from the origin: never on a voxel face or centre
+    # (multiples of 1/4, voxel size 1/2), always on a boundary of the 4 x 4 x 4 sub-cubes (1/8) of
+    # the stratified sampling. Each sub-cube is then wholly inside the union or wholly outside,
+    # so its one sample says which, and the estimate equals the exact (analytic) fraction.
+    shift, size, origin, grid = 0.25, 0.5, -0.375, (4, 4, 4)
+    vertices = jnp.asarray(np.concatenate([CUBE, CUBE + shift]))
+    faces = jnp.asarray(np.concatenate([CUBE_FACES, CUBE_FACES + len(CUBE)]))
+    fractions = mesh_to_voxel_fraction(vertices, faces, [origin] * 3, size, grid, n_samples=64, implementation=implementation)
+    # Precondition: no sample lies on a face's plane (float32 rounding could put one there).
+    _lower, samples = sample_points(jnp.full(3, origin, jnp.float32), size, grid, 64, 4, 42)
+    assert not np.isin(np.asarray(samples), np.float32([0.0, shift, 1.0, 1.0 + shift])).any()
+    k, j, i = np.meshgrid(*(np.arange(4.0),) * 3, indexing="ij")
+    lower = origin + size * np.stack([i, j, k], axis=-1)
+    upper = lower + size
+    in_a, in_b = _box_overlap(lower, upper, 0.0, 1.0), _box_overlap(lower, upper, shift, 1.0 + shift)
+    exact = (in_a + in_b - _box_overlap(lower, upper, shift, 1.0)) / size**3
+    np.testing.assert_allclose(np.asarray(fractions), exact, rtol=0, atol=1e-6)
+    assert abs(float(fractions.sum()) * size**3 - (2.0 - (1.0 - shift) ** 3)) < 1e-6
 
 
 @pytest.mark.parametrize("implementation", BACKENDS)
