@@ -1,12 +1,16 @@
-"""One small case per registered op, for the table-driven tests of ``test_transformations.py``.
+"""The one case table: one small case per registered op, for every table-driven test.
 
 ``CASES[name](dtype)`` returns an :class:`OpCase`: the op's float arrays (the inputs that are
 differentiated, for a differentiable op), its fixed inputs (topology, options), which outputs are
-differentiated, and batched / empty / wrong-shape variants of the arrays. Every op of
-``geomjax._registry.REGISTRY`` needs a builder here (``test_every_registered_op_has_a_case``).
+differentiated, and batched / empty / zero-control / wrong-shape variants of the arrays, and an
+option value the op rejects. Every op of ``geomjax._registry.REGISTRY`` needs a builder here
+(``test_every_registered_op_has_a_case``). The JAX tests (``test_transformations.py``) call the
+cases directly; torch_bridge's tests take the same inputs as tensors (:func:`torch_inputs`), so
+both fronts are checked on the same shapes. Backends always come from the registry.
 
 Inputs are small and share a few shapes (one icosphere, one tetrahedral box, 12 query points)
-because compilation dominates the runtime on a small CPU machine.
+because compilation dominates the runtime on a small CPU machine: each distinct shape is another
+set of compiled programs that every run pays for.
 """
 
 from __future__ import annotations
@@ -52,6 +56,10 @@ class OpCase:
         empty: ``arrays`` with zero points / queries, or ``None`` when the op rejects them.
         bad_shape: ``arrays`` with one of wrong shape (the op raises ``ValueError``).
         output_dtype: the float outputs' dtype when it is not the inputs' (e.g. always float32).
+        no_controls: ``arrays`` with zero control points (the identity deformation), or ``None``
+            for an op without control points.
+        bad_option: keyword options that the op rejects with ``ValueError``, or ``None`` when it
+            has no such option.
     """
 
     name: str
@@ -64,6 +72,8 @@ class OpCase:
     empty: tuple[jax.Array, ...] | None
     bad_shape: tuple[jax.Array, ...]
     output_dtype: Any = None
+    no_controls: tuple[jax.Array, ...] | None = None
+    bad_option: Mapping[str, Any] | None = None
 
     @property
     def function(self) -> Callable:
@@ -152,8 +162,8 @@ def _stack_perturbed(arrays, in_axes, seed, scale=0.02):
     return tuple(out)
 
 
-def _deformation_case(name, dtype, arg_names, arrays, fixed, *, seed, empty=None, bad_shape=None):
-    in_axes = (0,) * len(arrays)
+def _deformation_case(name, dtype, arg_names, arrays, fixed, *, seed, empty=None, bad_shape=None, in_axes=None, **variants):
+    in_axes = (0,) * len(arrays) if in_axes is None else in_axes
     return OpCase(
         name=name,
         arg_names=arg_names,
@@ -164,17 +174,25 @@ def _deformation_case(name, dtype, arg_names, arrays, fixed, *, seed, empty=None
         in_axes=in_axes,
         empty=empty,
         bad_shape=_drop_coordinate(arrays) if bad_shape is None else bad_shape,
+        **variants,
     )
 
 
+def _point_weights(rng, n=NUM_QUERIES):
+    """Per-point weights in [-0.25, 1.25] (negative and above one, as the reference allows), at
+    least 0.01 away from zero: a test divides the displacement by them."""
+    weights = rng.uniform(0.05, 1.25, n)
+    return np.where(rng.random(n) < 0.25, -0.2 * weights, weights)
+
+
 # ---------------------------------------------------------------------------------------------
-# deformations
+# deformations (the ones with per-point weights take them as a differentiated array)
 # ---------------------------------------------------------------------------------------------
 
 
 def displace_points(dtype):
     rng = _rng(1)
-    arrays = _cast(dtype, rng.normal(size=(NUM_QUERIES, 3)), 0.1 * rng.normal(size=(NUM_QUERIES, 3)), rng.uniform(0.2, 1.0, NUM_QUERIES))
+    arrays = _cast(dtype, rng.normal(size=(NUM_QUERIES, 3)), 0.1 * rng.normal(size=(NUM_QUERIES, 3)), _point_weights(rng))
     empty = _cast(dtype, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,)))
     return _deformation_case(
         "displace_points", dtype, ("points", "displacement", "point_weights"), arrays, {}, seed=101, empty=empty
@@ -182,33 +200,39 @@ def displace_points(dtype):
 
 
 def morph_points(dtype):
+    # Per-control radii (differentiated): the points lie partly outside the supports.
     rng = _rng(2)
-    arrays = _cast(dtype, _query_points(2, 0.0, 1.0), rng.uniform(0.2, 0.8, (4, 3)), 0.2 * rng.normal(size=(4, 3)))
-    empty = (jnp.zeros((0, 3), dtype), *arrays[1:])
+    points, weights = _query_points(2, 0.0, 1.0), _point_weights(rng)
+    controls, displacements, radii = rng.uniform(0.2, 0.8, (4, 3)), 0.2 * rng.normal(size=(4, 3)), rng.uniform(0.8, 1.0, 4)
+    arrays = _cast(dtype, points, controls, displacements, radii, weights)
     return _deformation_case(
         "morph_points",
         dtype,
-        ("points", "control_points", "control_displacements"),
+        ("points", "control_points", "control_displacements", "radius", "point_weights"),
         arrays,
-        {"radius": 0.9},
+        {},
         seed=102,
-        empty=empty,
+        empty=_cast(dtype, np.zeros((0, 3)), controls, displacements, radii, np.zeros((0,))),
+        no_controls=_cast(dtype, points, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,)), weights),
+        bad_option={"radius": -1.0},
     )
 
 
 def radial_basis_function_deform_points(dtype):
     rng = _rng(3)
     corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.0]])
-    arrays = _cast(dtype, _query_points(3, 0.1, 0.9), corners + 0.05 * rng.uniform(size=corners.shape), 0.2 * rng.normal(size=(5, 3)))
-    empty = (jnp.zeros((0, 3), dtype), *arrays[1:])
+    points, weights = _query_points(3, 0.1, 0.9), _point_weights(rng)
+    controls, displacements = corners + 0.05 * rng.uniform(size=corners.shape), 0.2 * rng.normal(size=(5, 3))
     return _deformation_case(
         "radial_basis_function_deform_points",
         dtype,
-        ("points", "control_points", "control_displacements"),
-        arrays,
+        ("points", "control_points", "control_displacements", "point_weights"),
+        _cast(dtype, points, controls, displacements, weights),
         {"smoothing": 0.01},
         seed=103,
-        empty=empty,
+        empty=_cast(dtype, np.zeros((0, 3)), controls, displacements, np.zeros((0,))),
+        no_controls=_cast(dtype, points, np.zeros((0, 3)), np.zeros((0, 3)), weights),
+        bad_option={"smoothing": -1.0},
     )
 
 
@@ -216,11 +240,18 @@ def free_form_deform_points(dtype):
     # A local basis, so that implementation=None picks Warp on CPU (registry "cpu" entry) and the
     # default's forward mode and second order come from the JAX path.
     rng = _rng(4)
-    arrays = _cast(dtype, _query_points(4, 0.05, 0.95), 0.2 * rng.normal(size=(2, 3, 2, 3)))
-    empty = (jnp.zeros((0, 3), dtype), arrays[1])
+    lattice, weights = 0.2 * rng.normal(size=(2, 3, 2, 3)), _point_weights(rng)
+    arrays = _cast(dtype, _query_points(4, 0.05, 0.95), lattice, weights)
     fixed = {"origin": [0.0, 0.0, 0.0], "extent": [1.0, 1.0, 1.0], "basis": "cubic_hermite"}
     return _deformation_case(
-        "free_form_deform_points", dtype, ("points", "control_displacements"), arrays, fixed, seed=104, empty=empty
+        "free_form_deform_points",
+        dtype,
+        ("points", "control_displacements", "point_weights"),
+        arrays,
+        fixed,
+        seed=104,
+        empty=_cast(dtype, np.zeros((0, 3)), lattice, np.zeros((0,))),
+        bad_option={"extent": [1.0, 0.0, 1.0]},
     )
 
 
@@ -232,23 +263,28 @@ def sobolev_deform_points(dtype):
     # agree to rounding rather than to the stopping rule.
     tolerance = float(jnp.finfo(dtype).eps) * 100
     fixed = {"cells": jnp.asarray(SPHERE_FACES), "length_scale": 0.3, "tolerance": tolerance, "max_iterations": 512}
-    return _deformation_case("sobolev_deform_points", dtype, ("points", "displacement"), arrays, fixed, seed=105)
+    return _deformation_case(
+        "sobolev_deform_points", dtype, ("points", "displacement"), arrays, fixed, seed=105, bad_option={"length_scale": -1.0}
+    )
 
 
 def shrinkwrap_points(dtype):
-    arrays = _cast(dtype, _face_points(6, -0.1, 0.3), SPHERE_POINTS)
-    fixed = {"target_faces": jnp.asarray(SPHERE_FACES), "offset": 0.05}
-    in_axes = (0, None)  # one target shared by the batch
+    # One target (and one offset) shared by the batch; the offset is differentiated.
+    rng = _rng(6)
+    points, weights = _face_points(6, -0.1, 0.3), _point_weights(rng)
+    arrays = _cast(dtype, points, SPHERE_POINTS, 0.05, weights)
+    in_axes = (0, None, None, 0)
     return OpCase(
         name="shrinkwrap_points",
-        arg_names=("points", "target_points"),
+        arg_names=("points", "target_points", "offset", "point_weights"),
         arrays=arrays,
-        fixed=fixed,
+        fixed={"target_faces": jnp.asarray(SPHERE_FACES)},
         differentiated=(0,),
         batched=_stack_perturbed(arrays, in_axes, 106, scale=0.005),
         in_axes=in_axes,
-        empty=(jnp.zeros((0, 3), dtype), arrays[1]),
+        empty=_cast(dtype, np.zeros((0, 3)), SPHERE_POINTS, 0.05, np.zeros((0,))),
         bad_shape=_drop_coordinate(arrays),
+        bad_option={"max_distance": -1.0},
     )
 
 
@@ -257,7 +293,7 @@ def shrinkwrap_points(dtype):
 # ---------------------------------------------------------------------------------------------
 
 
-def _energy_case(name, topology_name, reference, topology, seed, **options):
+def _energy_case(name, topology_name, reference, topology, seed, bad_option, **options):
     def build(dtype):
         points = reference + 0.05 * _rng(seed).normal(size=reference.shape)
         arrays = _cast(dtype, points, reference)
@@ -271,20 +307,29 @@ def _energy_case(name, topology_name, reference, topology, seed, **options):
             in_axes=(0, 0),
             empty=None,  # the mesh is fixed: zero points with its cells are out of range
             bad_shape=_drop_coordinate(arrays),
+            bad_option=bad_option,
         )
 
     build.__name__ = name
     return build
 
 
-simplex_strain_energy = _energy_case("simplex_strain_energy", "cells", BOX_POINTS, BOX_TETS, 7, lame_lambda=0.5)
-simplex_measure_energy = _energy_case("simplex_measure_energy", "cells", BOX_POINTS, BOX_TETS, 8, target_ratio=1.1)
-total_measure_energy = _energy_case("total_measure_energy", "cells", BOX_POINTS, BOX_TETS, 9)
+simplex_strain_energy = _energy_case(
+    "simplex_strain_energy", "cells", BOX_POINTS, BOX_TETS, 7, {"shear_modulus": -1.0}, lame_lambda=0.5
+)
+simplex_measure_energy = _energy_case(
+    "simplex_measure_energy", "cells", BOX_POINTS, BOX_TETS, 8, {"target_ratio": 0.0}, target_ratio=1.1
+)
+total_measure_energy = _energy_case("total_measure_energy", "cells", BOX_POINTS, BOX_TETS, 9, {"target_ratio": -1.0})
 # minimum_jacobian 1.2 makes every term active (the default 0.1 is inactive for small deformations).
-simplex_inversion_energy = _energy_case("simplex_inversion_energy", "cells", BOX_POINTS, BOX_TETS, 10, minimum_jacobian=1.2)
-surface_bending_energy = _energy_case("surface_bending_energy", "hinges", SPHERE_POINTS, SPHERE_HINGES, 11)
+simplex_inversion_energy = _energy_case(
+    "simplex_inversion_energy", "cells", BOX_POINTS, BOX_TETS, 10, {"minimum_jacobian": -0.5}, minimum_jacobian=1.2
+)
+surface_bending_energy = _energy_case(
+    "surface_bending_energy", "hinges", SPHERE_POINTS, SPHERE_HINGES, 11, {"reduction": "max"}
+)
 closed_surface_volume_energy = _energy_case(
-    "closed_surface_volume_energy", "triangles", SPHERE_POINTS, SPHERE_FACES, 12, target_ratio=0.9
+    "closed_surface_volume_energy", "triangles", SPHERE_POINTS, SPHERE_FACES, 12, {"reduction": "max"}, target_ratio=0.9
 )
 
 
@@ -307,6 +352,7 @@ def signed_distance_field(dtype):
         in_axes=in_axes,
         empty=(arrays[0], jnp.zeros((0, 3), dtype)),
         bad_shape=_drop_coordinate(arrays, 1),
+        bad_option={"max_dist": -1.0},
     )
 
 
@@ -326,6 +372,7 @@ def ray_mesh_intersect(dtype):
         in_axes=in_axes,
         empty=(arrays[0], jnp.zeros((0, 3), dtype), jnp.zeros((0, 3), dtype)),
         bad_shape=_drop_coordinate(arrays, 1),
+        bad_option={"max_distance": -1.0},
     )
 
 
@@ -350,6 +397,7 @@ def mesh_to_voxel_fraction(dtype):
         empty=None,  # an empty mesh is a ValueError
         bad_shape=_drop_coordinate(arrays),
         output_dtype=jnp.float32,
+        bad_option={"voxel_size": -1.0},
     )
 
 
@@ -373,6 +421,7 @@ def mesh_poisson_disk_sample(dtype):
         empty=None,
         bad_shape=_drop_coordinate(arrays),
         output_dtype=jnp.float32,
+        bad_option={"min_distance": -1.0},
     )
 
 
@@ -391,6 +440,7 @@ def remeshing(dtype):
         in_axes=(0,),
         empty=None,
         bad_shape=_drop_coordinate(arrays),
+        bad_option={"n_clusters": 0},
     )
 
 
@@ -408,6 +458,7 @@ def farthest_point_sampling(dtype):
         empty=None,  # num_samples=4 needs at least 4 points
         output_dtype=jnp.int32,
         bad_shape=(arrays[0][None, None],),  # (N, D) and (B, N, D) only
+        bad_option={"num_samples": NUM_QUERIES + 1},  # more samples than points
     )
 
 
@@ -434,3 +485,54 @@ CASES: Mapping[str, Callable[[Any], OpCase]] = {
         farthest_point_sampling,
     )
 }
+
+
+# ---------------------------------------------------------------------------------------------
+# the same cases as torch tensors, and the comparison tolerance
+# ---------------------------------------------------------------------------------------------
+
+VARIANTS = ("arrays", "batched", "empty", "no_controls")
+
+
+def torch_inputs(name: str, dtype, variant: str = "arrays") -> dict[str, Any]:
+    """The case's keyword inputs for torch_bridge: arrays (of ``variant``) as ``dtype`` tensors,
+    integer arrays (topology) as int64 tensors (torch's index dtype), other options unchanged.
+
+    ``dtype`` is ``torch.float32`` or ``torch.float64``. Build float64 cases with JAX's x64 mode on
+    (the arrays are made by JAX first).
+    """
+    import torch
+
+    case = CASES[name]({torch.float32: jnp.float32, torch.float64: jnp.float64}[dtype])
+    arrays = getattr(case, variant)
+    assert variant in VARIANTS and arrays is not None, f"{name} has no {variant!r} variant"
+
+    def to_torch(x):
+        if not isinstance(x, (jax.Array, np.ndarray)):
+            return x
+        x = np.asarray(x)
+        return torch.from_numpy(x.astype(np.int64) if np.issubdtype(x.dtype, np.integer) else x.copy())
+
+    return {**{k: to_torch(v) for k, v in case.fixed.items()}, **{k: to_torch(a) for k, a in zip(case.arg_names, arrays)}}
+
+
+def tolerance(dtype, size: int) -> float:
+    """``100 n eps``: the rounding two evaluation orders of an ``n``-input computation may differ by."""
+    return 100 * size * float(jnp.finfo(dtype).eps)
+
+
+def assert_trees_close(actual, expected, dtype, size, err_msg=""):
+    """Floats within ``100 n eps`` (relative to the largest entry), integers and bools exactly."""
+    actual_leaves, expected_leaves = jax.tree.leaves(actual), jax.tree.leaves(expected)
+    assert len(actual_leaves) == len(expected_leaves), err_msg
+    rtol = tolerance(dtype, size)
+    for i, (a, e) in enumerate(zip(actual_leaves, expected_leaves)):
+        a, e = np.asarray(a), np.asarray(e)
+        msg = f"{err_msg} (leaf {i})"
+        assert a.shape == e.shape and a.dtype == e.dtype, (msg, a.shape, a.dtype, e.shape, e.dtype)
+        if np.issubdtype(e.dtype, np.inexact):
+            finite = np.isfinite(e)
+            scale = float(np.max(np.abs(e[finite]), initial=1.0))
+            np.testing.assert_allclose(a, e, rtol=rtol, atol=rtol * scale, err_msg=msg)
+        else:
+            np.testing.assert_array_equal(a, e, err_msg=msg)

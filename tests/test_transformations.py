@@ -25,11 +25,11 @@ from jax.test_util import check_jvp, check_vjp
 
 import geomjax
 import torch_bridge
-from torch_bridge._ops import OPS as TORCH_TABLE
 from geomjax._dispatch import PORTABLE_ALIASES, select_implementation
 from geomjax._registry import JAX_DIFFERENTIABLE, REGISTRY, declaration
+from torch_bridge._ops import OPS as TORCH_TABLE
 
-from .op_cases import CASES, OpCase
+from .op_cases import CASES, OpCase, assert_trees_close, torch_inputs
 
 NAMES = list(REGISTRY)
 DIFFERENTIABLE = [n for n in NAMES if REGISTRY[n].differentiable]
@@ -74,32 +74,6 @@ def capabilities(name, implementation):
         variant = CASES[name](jnp.float64).fixed.get("basis")
         implementation = select_implementation(name, None, platform=jax.default_backend(), variant=variant).name
     return declaration(name).capabilities(implementation)
-
-
-# ---------------------------------------------------------------------------------------------
-# tolerances: from the dtype's epsilon and the problem's size
-# ---------------------------------------------------------------------------------------------
-
-
-def tolerance(dtype, size):
-    return 100 * size * float(jnp.finfo(dtype).eps)
-
-
-def assert_trees_close(actual, expected, dtype, size, err_msg=""):
-    """Floats within ``100 n eps`` (relative to the largest entry), integers and bools exactly."""
-    actual_leaves, expected_leaves = jax.tree.leaves(actual), jax.tree.leaves(expected)
-    assert len(actual_leaves) == len(expected_leaves), err_msg
-    rtol = tolerance(dtype, size)
-    for i, (a, e) in enumerate(zip(actual_leaves, expected_leaves)):
-        a, e = np.asarray(a), np.asarray(e)
-        msg = f"{err_msg} (leaf {i})"
-        assert a.shape == e.shape and a.dtype == e.dtype, (msg, a.shape, a.dtype, e.shape, e.dtype)
-        if np.issubdtype(e.dtype, np.inexact):
-            finite = np.isfinite(e)
-            scale = float(np.max(np.abs(e[finite]), initial=1.0))
-            np.testing.assert_allclose(a, e, rtol=rtol, atol=rtol * scale, err_msg=msg)
-        else:
-            np.testing.assert_array_equal(a, e, err_msg=msg)
 
 
 def assert_bitwise_equal(actual, expected):
@@ -573,18 +547,13 @@ def test_wrong_shape_is_a_value_error(name):
 TORCH_OPS = [n for n in DIFFERENTIABLE if hasattr(torch_bridge, n) and n not in {op.name for op in TORCH_TABLE}]
 
 
-def _to_torch(x):
-    if isinstance(x, jax.Array):
-        return torch.from_numpy(np.array(x))
-    return x
-
-
 def _torch_function(name, num_differentiated=None):
     """``f(*tensors)`` of the case's first ``num_differentiated`` arrays (all by default), the
     others fixed, returning the differentiated outputs; and those tensors, requiring grad."""
     c = case(name, "f64")
-    fixed = {k: _to_torch(v) for k, v in c.fixed.items()}
-    tensors = [_to_torch(a) for a in c.arrays]
+    inputs = torch_inputs(name, torch.float64)
+    tensors = [inputs[k] for k in c.arg_names]
+    fixed = {k: v for k, v in inputs.items() if k not in c.arg_names}
     count = len(tensors) if num_differentiated is None else num_differentiated
     fn = getattr(torch_bridge, name)
 

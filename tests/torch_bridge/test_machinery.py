@@ -296,10 +296,12 @@ assert np.allclose(weights.grad.numpy(), d.sum(axis=1), rtol=1e-15, atol=1e-15)
 assert np.array_equal(points.grad.numpy(), np.ones((7, 3)))
 # Ops that build constants inside return float32 or raise when JAX's x64 mode is off: compare
 # with geomjax under an explicit x64 context (same jitted computation, so bit-identical).
-from tests.torch_bridge.test_ops import CASES, as_jax
+from tests.op_cases import torch_inputs
+from tests.torch_bridge.test_ops import NAMES, as_jax
 import geomjax
-for name, case in CASES.items():
-    inputs = {**case(torch.float64), "implementation": "jax"}
+for name in NAMES:
+    with jax.enable_x64(True):  # the case table builds float64 arrays with JAX
+        inputs = {**torch_inputs(name, torch.float64), "implementation": "jax"}
     out = getattr(torch_bridge, name)(**inputs)
     with jax.enable_x64(True):
         arrays = {k: v for k, v in as_jax(inputs).items() if isinstance(v, jax.Array)}

@@ -3,6 +3,7 @@ BVH of ray_mesh_intersect, and the eager ops whose output sizes depend on the da
 
 Values and gradients are compared with geomjax called directly on the same inputs (the JAX
 functions are the specification); torch.compile(fullgraph=True) must give the eager results.
+Inputs are the case table's (``tests/op_cases.py``), at the shapes of the JAX tests.
 """
 
 from __future__ import annotations
@@ -19,21 +20,21 @@ import geomjax
 import torch_bridge
 from torch_bridge._ops import MESH_OPS
 
-SPHERE = geomjax.icosphere(1)
-VERTICES = torch.tensor(np.asarray(SPHERE.points), dtype=torch.float64)
-FACES = torch.tensor(np.asarray(SPHERE.cells), dtype=torch.int64)
+from ..op_cases import torch_inputs
+
+SDF = torch_inputs("signed_distance_field", torch.float64)
+VERTICES, FACES = SDF["mesh_vertices"], SDF["mesh_indices"]  # the table's sphere (icosphere(1))
 
 
-def _query_points(n=7, seed=0):
-    gen = torch.Generator().manual_seed(seed)
-    return (torch.rand((n, 3), generator=gen, dtype=torch.float64) - 0.5) * 3.0
+def _query_points(dtype=torch.float64):
+    return torch_inputs("signed_distance_field", dtype)["input_points"]
 
 
-def _rays(n=6, seed=1):
-    gen = torch.Generator().manual_seed(seed)
-    origins = 0.2 * torch.rand((n, 3), generator=gen, dtype=torch.float64)
-    directions = torch.randn((n, 3), generator=gen, dtype=torch.float64)
-    directions[-1] = 0.0  # a degenerate ray misses
+def _rays():
+    """The table's rays from inside the sphere, the last one made degenerate (it misses)."""
+    rays = torch_inputs("ray_mesh_intersect", torch.float64)
+    origins, directions = rays["ray_origins"], rays["ray_directions"]
+    directions[-1] = 0.0
     return origins, directions
 
 
@@ -68,7 +69,7 @@ def test_every_mesh_op_is_exported_with_geomjax_signature():
 @pytest.mark.parametrize("implementation", ["jax", "warp"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
 def test_sdf_values_and_gradients_equal_geomjax(implementation, dtype):
-    vertices, points = VERTICES.to(dtype), _query_points().to(dtype)
+    vertices, points = VERTICES.to(dtype), _query_points(dtype)
     vertices_in, points_in = vertices.clone().requires_grad_(), points.clone().requires_grad_()
     distance, closest, face = torch_bridge.signed_distance_field(vertices_in, FACES, points_in, implementation=implementation)
 
@@ -86,7 +87,7 @@ def test_sdf_values_and_gradients_equal_geomjax(implementation, dtype):
 
 
 def test_sdf_gradcheck():
-    points = _query_points(4).requires_grad_()
+    points = _query_points().requires_grad_()
     vertices = VERTICES.clone().requires_grad_()
     assert torch.autograd.gradcheck(
         lambda v, p: torch_bridge.signed_distance_field(v, FACES, p, implementation="jax")[0], (vertices, points)
@@ -125,13 +126,14 @@ def test_ray_values_and_gradients_equal_geomjax(implementation):
     result = torch_bridge.ray_mesh_intersect(VERTICES, FACES, origins_in, directions, implementation=implementation)
     expected = geomjax.ray_mesh_intersect(_jax(VERTICES), _jax(FACES), _jax(origins), _jax(directions), implementation=implementation)
     _assert_outputs_equal([r.detach() for r in result], expected, 1e-12)
-    assert result[0].tolist()[:-1] == [True] * 5 and not result[0][-1]  # all from inside hit, except the zero ray
+    count = len(origins) - 1
+    assert result[0].tolist()[:-1] == [True] * count and not result[0][-1]  # all from inside hit, except the zero ray
     (grad,) = torch.autograd.grad(result[1][:-1].sum(), origins_in)
     _, pullback = jax.vjp(
         lambda o: geomjax.ray_mesh_intersect(_jax(VERTICES), _jax(FACES), o, _jax(directions), implementation=implementation)[1][:-1],
         _jax(origins),
     )
-    np.testing.assert_allclose(grad.numpy(), np.asarray(pullback(jnp.ones(5))[0]), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(grad.numpy(), np.asarray(pullback(jnp.ones(count))[0]), rtol=1e-12, atol=1e-12)
 
 
 def test_ray_returns_and_reuses_the_bvh():
@@ -179,23 +181,29 @@ def test_ray_compiled_equals_eager():
 # ---------------------------------------------------------------------------------------------
 
 
+VOXEL = torch_inputs("mesh_to_voxel_fraction", torch.float64)
+VOXEL_OPTIONS = {k: v for k, v in VOXEL.items() if k not in ("mesh_vertices", "mesh_indices", "origin", "grid_dims")}
+
+
 def test_voxel_fraction_equals_geomjax_with_tensor_or_sequence_options():
-    options = dict(voxel_size=0.5, n_samples=8, seed=3)
-    expected = geomjax.mesh_to_voxel_fraction(_jax(VERTICES), _jax(FACES), [-1.0, -1.0, -1.0], grid_dims=[4, 4, 4], **options)
-    by_sequence = torch_bridge.mesh_to_voxel_fraction(VERTICES, FACES, [-1.0, -1.0, -1.0], grid_dims=[4, 4, 4], **options)
+    origin, dims = VOXEL["origin"], list(VOXEL["grid_dims"])
+    expected = geomjax.mesh_to_voxel_fraction(_jax(VERTICES), _jax(FACES), origin, grid_dims=dims, **VOXEL_OPTIONS)
+    by_sequence = torch_bridge.mesh_to_voxel_fraction(VERTICES, FACES, origin, grid_dims=dims, **VOXEL_OPTIONS)
     by_tensor = torch_bridge.mesh_to_voxel_fraction(
-        VERTICES, FACES, torch.full((3,), -1.0, dtype=torch.float64), grid_dims=torch.tensor([4, 4, 4]), **options
+        VERTICES, FACES, torch.tensor(origin, dtype=torch.float64), grid_dims=torch.tensor(dims), **VOXEL_OPTIONS
     )
     for out in (by_sequence, by_tensor):
         np.testing.assert_allclose(out.numpy(), np.asarray(expected), rtol=0, atol=1e-12)
-    assert by_sequence.shape == (4, 4, 4) and 0.0 < float(by_sequence.mean()) < 1.0
+    assert tuple(by_sequence.shape) == tuple(dims[::-1]) and 0.0 < float(by_sequence.mean()) < 1.0
     with pytest.raises(TypeError, match="grid_dims"):
-        torch_bridge.mesh_to_voxel_fraction(VERTICES, FACES, [-1.0, -1.0, -1.0], 0.5, torch.tensor([4.0, 4.0, 4.0]))
+        torch_bridge.mesh_to_voxel_fraction(VERTICES, FACES, origin, VOXEL["voxel_size"], torch.tensor(dims, dtype=torch.float64))
 
 
 def test_voxel_fraction_compiles():
+    grid = {k: value for k, value in VOXEL.items() if k not in ("mesh_vertices", "mesh_indices")}
+
     def occupied(v):
-        return torch_bridge.mesh_to_voxel_fraction(v, FACES, [-1.0, -1.0, -1.0], 0.5, [4, 4, 4], n_samples=8).sum()
+        return torch_bridge.mesh_to_voxel_fraction(v, FACES, **grid).sum()
 
     torch._dynamo.reset()
     torch.testing.assert_close(torch.compile(occupied, fullgraph=True)(VERTICES), occupied(VERTICES), rtol=0, atol=0)
@@ -205,13 +213,18 @@ def test_voxel_fraction_compiles():
 # eager ops with data-dependent output sizes
 # ---------------------------------------------------------------------------------------------
 
+POISSON = torch_inputs("mesh_poisson_disk_sample", torch.float32)
+POISSON_OPTIONS = {k: v for k, v in POISSON.items() if k not in ("mesh_vertices", "mesh_indices")}
+REMESH = torch_inputs("remeshing", torch.float64)  # a jittered sphere: no equidistant ties
+CLUSTERS = REMESH["n_clusters"]
+
 
 @pytest.mark.parametrize("resolution", [32, (32, 16, 32), torch.tensor([32, 16, 32])], ids=["int", "tuple", "tensor"])
 def test_poisson_sample_equals_geomjax(resolution):
     vertices = VERTICES.float().requires_grad_()  # not differentiable: the samples do not require grad
-    samples = torch_bridge.mesh_poisson_disk_sample(vertices, FACES, 0.25, hash_grid_resolution=resolution)
+    samples = torch_bridge.mesh_poisson_disk_sample(vertices, FACES, **POISSON_OPTIONS, hash_grid_resolution=resolution)
     jax_resolution = tuple(resolution.tolist()) if isinstance(resolution, torch.Tensor) else resolution
-    expected = geomjax.mesh_poisson_disk_sample(_jax(VERTICES.float()), _jax(FACES), 0.25, hash_grid_resolution=jax_resolution)
+    expected = geomjax.mesh_poisson_disk_sample(_jax(VERTICES.float()), _jax(FACES), **POISSON_OPTIONS, hash_grid_resolution=jax_resolution)
     assert samples.dtype == torch.float32 and not samples.requires_grad
     np.testing.assert_array_equal(samples.numpy(), np.asarray(expected))
     assert samples.shape[0] > 20
@@ -219,36 +232,39 @@ def test_poisson_sample_equals_geomjax(resolution):
 
 def test_poisson_option_errors_name_both_forms():
     with pytest.raises(TypeError, match="an integer or a sequence of integers"):
-        torch_bridge.mesh_poisson_disk_sample(VERTICES, FACES, 0.25, hash_grid_resolution="fine")
-    with pytest.raises(ValueError):
-        torch_bridge.mesh_poisson_disk_sample(VERTICES, FACES, -0.25)
+        torch_bridge.mesh_poisson_disk_sample(VERTICES, FACES, **POISSON_OPTIONS, hash_grid_resolution="fine")
+    with pytest.raises(ValueError, match="min_distance"):
+        torch_bridge.mesh_poisson_disk_sample(VERTICES, FACES, **{**POISSON_OPTIONS, "min_distance": -0.25})
 
 
 def test_remeshing_equals_geomjax_and_keeps_dtypes():
-    vertices, faces = torch_bridge.remeshing(VERTICES, FACES.int(), 30)
-    expected = geomjax.remeshing(_jax(VERTICES), _jax(FACES.int()), 30)
+    vertices, faces = torch_bridge.remeshing(REMESH["mesh_vertices"], FACES.int(), CLUSTERS)
+    expected = geomjax.remeshing(_jax(REMESH["mesh_vertices"]), _jax(FACES.int()), CLUSTERS)
     _assert_outputs_equal((vertices, faces), expected, 0.0)
-    assert vertices.dtype == torch.float64 and faces.dtype == torch.int32 and vertices.shape[0] <= 30
+    assert vertices.dtype == torch.float64 and faces.dtype == torch.int32 and vertices.shape[0] <= CLUSTERS
 
 
 def test_data_dependent_ops_compile_with_unbacked_sizes():
     def sample_mean(v):
-        return torch_bridge.mesh_poisson_disk_sample(v, FACES, 0.25).mean(dim=0)
+        return torch_bridge.mesh_poisson_disk_sample(v, FACES, **POISSON_OPTIONS).mean(dim=0)
 
     def remeshed(v):
-        new_vertices, new_faces = torch_bridge.remeshing(v, FACES, 30)
+        new_vertices, new_faces = torch_bridge.remeshing(v, FACES, CLUSTERS)
         return new_vertices.sum(dim=0), new_faces.shape[0]
 
     torch._dynamo.reset()
     vertices = VERTICES.float()
     torch.testing.assert_close(torch.compile(sample_mean, fullgraph=True)(vertices), sample_mean(vertices), rtol=1e-6, atol=1e-7)
-    (total, count), (expected_total, expected_count) = torch.compile(remeshed, fullgraph=True)(VERTICES), remeshed(VERTICES)
+    jittered = REMESH["mesh_vertices"]
+    (total, count), (expected_total, expected_count) = torch.compile(remeshed, fullgraph=True)(jittered), remeshed(jittered)
     assert count == expected_count
     torch.testing.assert_close(total, expected_total, rtol=1e-12, atol=1e-12)
 
 
 def test_farthest_point_sampling_equals_geomjax():
-    indices = torch_bridge.farthest_point_sampling(VERTICES, 6, start_index=2)
-    expected = geomjax.farthest_point_sampling(_jax(VERTICES), 6, start_index=2)
+    fps = torch_inputs("farthest_point_sampling", torch.float64)
+    count = fps["num_samples"]
+    indices = torch_bridge.farthest_point_sampling(fps["points"], count, start_index=2)
+    expected = geomjax.farthest_point_sampling(_jax(fps["points"]), count, start_index=2)
     np.testing.assert_array_equal(indices.numpy(), np.asarray(expected))
-    assert indices[0] == 2 and len(set(indices.tolist())) == 6
+    assert indices[0] == 2 and len(set(indices.tolist())) == count
