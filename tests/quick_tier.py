@@ -29,7 +29,7 @@ TRANSFORMATIONS = "tests/test_transformations.py"
 BY_TEMPLATE = {
     "gradient": f"{TRANSFORMATIONS}::test_grad_matches_finite_differences[{{op}}-default]",
     "torch_bridge": f"{TRANSFORMATIONS}::test_torch_gradcheck[{{op}}]",
-    "bad_input": f"{TRANSFORMATIONS}::test_wrong_shape_is_a_value_error[{{op}}]",
+    "bad_input": f"{TRANSFORMATIONS}::test_wrong_shape_is_a_value_error[{{op}}-default]",
 }
 # The torch_bridge entry of the ops of torch_bridge's op table: gradcheck of the JAX path, which
 # every op has.

@@ -522,18 +522,39 @@ def test_unknown_implementation_is_a_key_error(name):
         c.call(*c.arrays, implementation="cuda")
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_non_float_array_is_a_type_error(name):
-    c = case(name, "f32")
-    with pytest.raises(TypeError):
-        c.call(c.arrays[0].astype(jnp.int32), *c.arrays[1:])
+# Every backend and the default: validation runs before the op's program is traced, so these rows
+# cost a few small programs (of the checks) at most.
+BAD_INPUT_PARAMS = _backend_params(NAMES, default=True)
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_wrong_shape_is_a_value_error(name):
+@pytest.mark.parametrize(("name", "implementation"), BAD_INPUT_PARAMS)
+def test_non_float_array_is_a_type_error(name, implementation):
     c = case(name, "f32")
-    with pytest.raises(ValueError):
-        c.call(*c.bad_shape)
+    with pytest.raises(TypeError, match="float"):
+        c.call(c.arrays[0].astype(jnp.int32), *c.arrays[1:], implementation=implementation)
+
+
+@pytest.mark.parametrize(("name", "implementation"), BAD_INPUT_PARAMS)
+def test_wrong_shape_is_a_value_error(name, implementation):
+    c = case(name, "f32")
+    with pytest.raises(ValueError, match="shape|dimension|rank|\\(N, 3\\)"):
+        c.call(*c.bad_shape, implementation=implementation)
+
+
+@pytest.mark.parametrize(("name", "implementation"), BAD_INPUT_PARAMS)
+def test_bad_option_is_a_value_error(name, implementation):
+    c = case(name, "f32")
+    if c.bad_option is None:
+        assert name == "displace_points", "every op with options lists one it rejects (op_cases.bad_option)"
+        pytest.skip(f"{name} has no option to reject")
+    option = next(iter(c.bad_option))
+    fixed = {k: v for k, v in c.fixed.items() if k not in c.bad_option}
+    arrays = {k: a for k, a in zip(c.arg_names, c.arrays) if k not in c.bad_option}
+    kwargs = {**fixed, **arrays, **c.bad_option}
+    if c.takes_implementation:
+        kwargs["implementation"] = implementation
+    with pytest.raises(ValueError, match=option):
+        c.function(**kwargs)
 
 
 # ---------------------------------------------------------------------------------------------
