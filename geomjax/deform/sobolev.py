@@ -84,7 +84,11 @@ def sobolev_deform_points(
 
     The system is solved by Jacobi-preconditioned CG on the whole ``(N, D)`` block (see
     :func:`geomjax.linalg.jacobi_pcg`), starting from the masked ``d``, until the true residual
-    satisfies ``||b - A u|| <= tolerance * ||b||`` over the whole field.
+    satisfies ``||b - A u|| <= tolerance * ||b||`` over the whole field, or reaches the rounding
+    floor ``0.5 eps ||diag(A) u||`` where that is larger: the residual that storing ``u`` in the
+    dtype alone leaves (no iterate does better). Only float32 on stiff systems meets it (fine or
+    badly shaped meshes, large ``length_scale``: a floor of 1e-6 to 3e-5 of ``||b||`` on scanned
+    meshes); there the result is as exact as float32 holds it.
 
     Args:
         points: vertex positions ``(N, D)`` or batched ``(B, N, D)``, float32 or float64.

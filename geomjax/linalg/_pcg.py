@@ -14,6 +14,14 @@ its max-norm, per-element stopping rule stalls where a 2-norm rule is met; and i
 * only accepts convergence on the *true* residual ``b - A x``: when the recurrence residual meets
   the tolerance the true residual is recomputed and, if rounding has made them drift apart, the
   recurrence restarts from it (one extra matvec per restart, usually one in total);
+* accepts the true residual at the *rounding floor* where that lies above ``rtol ||b||``: storing
+  the solution in the working precision moves each entry by up to ``u |x_i|`` (``u = eps / 2``),
+  which alone leaves a residual of about ``0.27 eps ||D x||_F`` (``D = diag(A)``; measured
+  0.25-0.30 on the Helmholtz systems of all eleven shared real meshes, ``benchmarks/
+  bench_real_meshes.py``). No iterate does better, so in float32 a tolerance below it (1e-6 on
+  stiff meshes, whose floor is 1e-6 to 3e-5) would otherwise fail after any number of
+  iterations. The floor accepted is ``FLOOR_FACTOR eps ||D x||_F``, twice the measured one;
+  in float64 it lies near 1e-14 of ``||b||`` and practically never binds;
 * uses the initial guess only if its residual is no larger than ``||b||`` (otherwise zero), so a
   forward-solve guess never slows down a tangent or adjoint solve that shares the options;
 * reports breakdown (non-finite values, ``p^T A p <= tiny`` in a column that is not yet solved, or
@@ -34,16 +42,21 @@ from jaxtyping import Array, Float
 
 from .._errors import runtime_branched_check
 
-__all__ = ["PCGResult", "jacobi_pcg", "solution_or_error", "JacobiPCG"]
+__all__ = ["PCGResult", "jacobi_pcg", "solution_or_error", "JacobiPCG", "FLOOR_FACTOR"]
+
+# The rounding floor accepted, in units of ``eps ||diag(A) x||_F`` (see the module docstring).
+FLOOR_FACTOR = 0.5
 
 
 class PCGResult(NamedTuple):
-    """Outcome of :func:`jacobi_pcg`: the solution, the iterations used and two status flags."""
+    """Outcome of :func:`jacobi_pcg`: the solution, the iterations used and three status flags
+    (``at_rounding_floor``: converged at the rounding floor, above ``rtol ||b||``)."""
 
     solution: Array
     num_steps: Array
     converged: Array
     breakdown: Array
+    at_rounding_floor: Array
 
 
 def _column_dot(a: Array, b: Array) -> Array:
@@ -79,7 +92,8 @@ def jacobi_pcg(
 
     Returns:
         :class:`PCGResult`. ``converged`` is true only when the true residual meets the tolerance
-        and no breakdown occurred. Works under ``jit`` and ``vmap`` (a batched solve iterates until
+        (or the rounding floor ``FLOOR_FACTOR eps ||diag(A) X||_F``, where that is larger) and no
+        breakdown occurred. Works under ``jit`` and ``vmap`` (a batched solve iterates until
         its last item converges; finished items are frozen). Not meant to be differentiated:
         :class:`JacobiPCG` and the Warp path's ``custom_vjp`` differentiate the solve implicitly.
     """
@@ -100,8 +114,14 @@ def jacobi_pcg(
     def squared_norm(r):
         return jnp.sum(r * r)
 
-    def meets_tolerance(rr):
-        return rr <= threshold  # False for NaN
+    floor_factor = jnp.asarray(FLOOR_FACTOR * jnp.finfo(dtype).eps, dtype)
+
+    def accepted(x):
+        """The squared residual accepted at ``x``: the tolerance's, or the rounding floor's."""
+        return jnp.maximum(threshold, squared_norm(floor_factor * x / inverse_diagonal))
+
+    def meets_tolerance(rr, x):
+        return rr <= accepted(x)  # False for NaN
 
     x = initial_guess / scale
     r = b - matvec(x)
@@ -128,15 +148,19 @@ def jacobi_pcg(
         broken = broken | ~jnp.all(jnp.isfinite(gamma_next) & (gamma_next >= 0)) | ~jnp.isfinite(rr)
         return x, r, p, gamma_next, rr, steps + 1, broken
 
-    def keep_iterating(state):
-        *_, rr, steps, broken = state
-        return ~meets_tolerance(rr) & ~broken & (steps < max_steps)
-
     def restart(state):
         # ``r`` is a true residual here; iterate on the recurrence, then recompute it exactly.
         x, r, rr, steps, broken = state
         z = r * inverse_diagonal
         gamma = _column_dot(r, z)
+        # The recurrence runs to the level accepted at the restart's start (the floor moves with
+        # ``x``, little once near the solution; the true residual below decides).
+        level = accepted(x)
+
+        def keep_iterating(state):
+            *_, rr, steps, broken = state
+            return ~(rr <= level) & ~broken & (steps < max_steps)
+
         inner = (x, r, z, gamma, rr, steps, broken)
         x, _, _, _, _, steps, broken = jax.lax.while_loop(keep_iterating, cg_step, inner)
         r = b - matvec(x)
@@ -144,13 +168,14 @@ def jacobi_pcg(
         return x, r, rr, steps, broken | ~jnp.isfinite(rr)
 
     def not_done(state):
-        _, _, rr, steps, broken = state
-        return ~meets_tolerance(rr) & ~broken & (steps < max_steps)
+        x, _, rr, steps, broken = state
+        return ~meets_tolerance(rr, x) & ~broken & (steps < max_steps)
 
     rr = squared_norm(r)
     start = (x, r, rr, jnp.zeros((), jnp.int32), ~finite_rhs | ~jnp.isfinite(rr))
     x, _, rr, steps, broken = jax.lax.while_loop(not_done, restart, start)
-    return PCGResult(x * scale, steps, meets_tolerance(rr) & ~broken, broken)
+    converged = meets_tolerance(rr, x) & ~broken
+    return PCGResult(x * scale, steps, converged, broken, converged & ~(rr <= threshold))
 
 
 def solution_or_error(result: PCGResult, *, max_steps: int, context: str) -> Array:
@@ -163,7 +188,9 @@ def solution_or_error(result: PCGResult, *, max_steps: int, context: str) -> Arr
         failure,
         (
             "",
-            f"{context}: the Jacobi-PCG solve did not converge within {max_steps} iterations. Increase max_iterations or relax tolerance",
+            f"{context}: the Jacobi-PCG solve did not converge within {max_steps} iterations. Increase max_iterations "
+            "or relax tolerance (Jacobi-PCG needs more iterations where cells are badly shaped or much smaller than "
+            "length_scale)",
             f"{context}: the Jacobi-PCG solve did not converge (breakdown: non-finite values or a "
             "non-positive curvature p^T A p). Check that the inputs are finite; increase "
             "max_iterations or relax tolerance",

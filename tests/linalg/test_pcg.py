@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from geomjax.linalg import JacobiPCG, jacobi_pcg
+from geomjax.linalg._pcg import FLOOR_FACTOR
 
 
 def _helmholtz_1d(num_rows, stiffness_weight, dtype=jnp.float64):
@@ -101,11 +102,33 @@ def test_float32_convergence_is_on_the_true_residual():
         return matrix @ x
 
     result = jax.jit(lambda b: jacobi_pcg(matvec, b, 1 / jnp.diagonal(matrix), jnp.zeros_like(b), rtol=1e-4, max_steps=3000))(rhs)
-    assert bool(result.converged) and result.solution.dtype == jnp.float32
+    assert bool(result.converged) and result.solution.dtype == jnp.float32 and not bool(result.at_rounding_floor)
     # One initial residual, one product per iteration, one true residual per (re)start: > 1 start.
     assert matvecs[0] - int(result.num_steps) - 1 >= 2
     true_residual = np.asarray(rhs, np.float64) - np.asarray(matrix, np.float64) @ np.asarray(result.solution, np.float64)
     assert np.linalg.norm(true_residual) <= 1e-4 * np.linalg.norm(np.asarray(rhs, np.float64))
+
+
+def test_float32_accepts_the_rounding_floor_and_no_more():
+    """A tolerance below what float32 can hold: the solve stops at the rounding floor (the residual
+    of the exact solution rounded to float32 is about 0.27 eps ||D x||), not after max_steps, and
+    flags it; the answer is the exact solution to float32's accuracy for this conditioning."""
+    matrix = _helmholtz_1d(2000, 2000.0, jnp.float32)
+    rhs = jnp.asarray(np.random.default_rng(5).normal(size=(2000, 2)), jnp.float32)
+    exact = np.linalg.solve(np.asarray(matrix, np.float64), np.asarray(rhs, np.float64))
+    rounded_residual = np.linalg.norm(np.asarray(rhs, np.float64) - np.asarray(matrix, np.float64) @ exact.astype(np.float32))
+    eps = float(jnp.finfo(jnp.float32).eps)
+    floor = eps * np.linalg.norm(np.diagonal(np.asarray(matrix, np.float64))[:, None] * exact)
+    assert rounded_residual > 1e-9 * np.linalg.norm(np.asarray(rhs))  # far above rtol: the floor binds
+    result = _solve(matrix, rhs, rtol=1e-9, max_steps=3000)
+    assert bool(result.converged) and bool(result.at_rounding_floor) and not bool(result.breakdown)
+    true_residual = np.asarray(rhs, np.float64) - np.asarray(matrix, np.float64) @ np.asarray(result.solution, np.float64)
+    assert np.linalg.norm(true_residual) <= FLOOR_FACTOR * floor
+    # Forward error: that residual through the inverse (its smallest eigenvalue is 1).
+    assert np.linalg.norm(np.asarray(result.solution, np.float64) - exact) <= FLOOR_FACTOR * floor
+    # In float64 the same tolerance is met outright, without the floor.
+    double = _solve(matrix.astype(jnp.float64), rhs.astype(jnp.float64), rtol=1e-9, max_steps=3000)
+    assert bool(double.converged) and not bool(double.at_rounding_floor)
 
 
 def test_vmap_matches_a_loop_and_freezes_finished_items():
