@@ -12,37 +12,62 @@ float32 fractions, ``nz * ny * nx < 2**31``.
    its centre; a marked one the stratified Monte-Carlo mean over its samples (the same positions
    as the JAX path: ``sample_jitter``).
 
-Inside tests query with a radius that always reaches the mesh (the distance to the mesh-box
-centre plus its half diagonal), so a grid window deep inside a mesh reads as inside, unlike the
-reference's ``voxel_size * max(grid_dims)`` radius.
+Every inside test compares a winding number with ``params[4]`` (0.5 for closed meshes), as in
+the JAX path: Warp's fast winding number (``mesh_query_point_sign_winding_number``, mesh built
+with ``support_winding_number=True``), or in closed mode an integer count (below). The
+angle-weighted pseudo-normal sign used before answered "outside" at the exact centre of a
+sphere, where many faces are equally close, and near self-intersections. Queries use a radius
+that always reaches the mesh (the distance to the mesh-box centre plus its half diagonal), so a
+grid window deep inside a mesh reads as inside, unlike the reference's
+``voxel_size * max(grid_dims)`` radius.
 
-Every inside test compares the fast winding number (``mesh_query_point_sign_winding_number``,
-mesh built with ``support_winding_number=True``; in closed mode's marked voxels, its value plus
-signed crossings, below) with ``params[4]`` (0.5 for closed meshes), as in the JAX path. The angle-weighted pseudo-normal sign used before answered "outside" at the exact
-centre of a sphere, where many faces are equally close, and near self-intersections.
+Closed meshes. Away from the surface the winding number of a closed mesh is an integer, and it
+changes by one where a segment crosses a triangle: +1 entering through its front (the side
+``cross(b - a, c - a)`` points to), -1 leaving through it. Signed counts, not the parity of the
+crossings flipping an inside state: where parts of a mesh overlap (two interpenetrating closed
+parts given as one mesh: winding number 2 in the overlap), a point one crossing away from the
+overlap has winding number 1 and is inside, which a parity flip reads as outside.
 
-Closed meshes. Along a row, consecutive unmarked voxels share their state
-(the segment between their centres crosses no triangle, so the winding number does not change),
-so only the first of each run is queried. In a marked voxel only the centre is queried, for its
-winding number rounded to an integer (away from the surface the winding number of a closed mesh
-is an integer; the fast one is within rounding of it). A sample's winding number is the centre's
-plus the signed crossings of the segment centre->sample, counted against the triangles whose
-boxes meet the voxel (every triangle the segment can cross): +1 entering a triangle from its
-front (the side ``cross(b - a, c - a)`` points to), -1 leaving through it. The sample is inside
-where that exceeds ``params[4]``. Signed counts, not the parity of the crossings flipping the
-centre's state: where parts of a mesh overlap (two interpenetrating closed parts given as one
-mesh: winding number 2 in the overlap), a sample one crossing away from a centre in the overlap
-has winding number 1 and is inside, which a parity flip reads as outside. The crossing test
-uses orientation signs of the segment against each edge computed in a canonical vertex order, so
-a segment through a shared edge or vertex is counted exactly once. A centre within ``2**-10``
-voxel sizes of the surface, where float32 rounding could put it on one side of a nearby triangle
-for the crossing test and on the other for the winding number, falls back to one query per
-sample. This is ~8x faster than a query per sample (measured at 64^3).
+* A row is one chain. The winding number at a voxel centre is the previous centre's plus the
+  signed crossings of the segment between them, counted against the triangles whose boxes meet
+  either voxel (every triangle the segment can cross: it lies in the two voxels). Two
+  consecutive unmarked voxels thus have equal winding numbers, and a marked voxel visits the
+  triangles once for all of its work: one ``mesh_query_aabb`` over its box, widened to the
+  previous voxel's when that one is marked too, counts the segment from the previous centre,
+  the segment to the next centre when that voxel is unmarked (its triangles are all here), and
+  the samples.
+* A sample's winding number is its voxel centre's plus the signed crossings of the segment
+  centre->sample, counted against the triangles whose boxes meet the voxel. A voxel is inside
+  (unmarked) or a sample is counted (marked) where its winding number exceeds ``params[4]``.
+* A chain starts with a query of the winding number (Warp's fast one, rounded to an integer):
+  at a row's first voxel, with no query where its centre lies outside the mesh's box
+  (winding number 0), and at the voxel after a centre within ``2**-10`` voxel sizes of the
+  surface. Float32 rounding could put such a centre on one side of a nearby triangle for one
+  count and on the other side for the next, so its voxel falls back to one query per sample
+  and the chain restarts. That distance needs no search: any triangle so close meets the
+  voxel, so the least exact point-triangle distance over the voxel's triangles (those whose
+  box comes that close) decides.
+* A chain is checked where it ends (the row's last centre, or the centre before one within the
+  guard) against a query there (0 outside the mesh's box: free on a grid with a margin), when it
+  has counted a segment since its own query. A closed mesh passes. A row that fails (a mesh with
+  holes, whose winding number also changes off the triangles, or a fast winding number more than
+  0.5 off) is walked again anchored, as without chains: a query at every marked centre and at
+  the first of each run of unmarked voxels, so such errors stay local instead of running on
+  along the row. Errors that cancel before a chain's end are not caught: on an open mesh a few
+  centres where the winding number is near 0.5 can then differ from the anchored walk.
+* Counted exactly once. Each test takes orientation signs of the segment against the edges
+  with every edge in a canonical vertex order (lower index first), so the two faces of an edge
+  see the same sign and a segment through the edge counts for one of them. A sample's segment
+  takes its plane through the voxel centre (``_edge_plane``; ties, of probability zero for
+  jittered samples, on one fixed side). The chain's segments run along x and can pass exactly
+  through a vertex (the centre of a fan-triangulated cap on the row's line): their sign is the
+  edge's orientation around the row's line in the (y, z) projection, exact ties broken as if
+  the line were moved by ``(e, e**2)`` (simulation of simplicity), so a line through a vertex,
+  too, enters exactly one of the faces around it.
 
 Warp 1.19 exposes the fast winding number only behind a threshold
 (``mesh_query_point_sign_winding_number``); its value comes from Warp's native
-``wp::mesh_query_winding_number`` (the function that query calls) through ``wp.func_native``,
-next to a ``mesh_query_point_no_sign`` for the distance: the same two searches as that query.
+``wp::mesh_query_winding_number`` (the function that query calls) through ``wp.func_native``.
 
 Open meshes: the winding number varies continuously off the surface, so every unmarked centre
 and every sample is queried.
@@ -56,6 +81,7 @@ import jax.numpy as jnp
 from ._grid import mesh_in_call
 from ._wrap import CallableFamily, launch_in_chunks
 from ._wrap import warp as wp
+from .closest import triangle_distance_sq
 
 wp.set_module_options({"enable_backward": False})
 
@@ -146,16 +172,12 @@ def _winding_number(mesh: wp.uint64, p: wp.vec3, accuracy: float) -> float:  # t
 
 @wp.func
 @no_type_check
-def _query_winding(mesh: wp.uint64, p: wp.vec3, centre: wp.vec3, reach: float, accuracy: float):
-    """``(winding number rounded to an integer, distance to the surface)``: the same closest-point
-    search and winding number as :func:`_query_inside`. The rounding is meaningful only away
-    from the surface (callers check the distance); no point in reach reads as distance 0."""
-    radius = (wp.length(p - centre) + reach) * RADIUS_PAD
-    q = wp.mesh_query_point_no_sign(mesh, p, radius)
-    distance = float(0.0)
-    if q.result:
-        distance = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - p)
-    return int(wp.round(_winding_number(mesh, p, accuracy))), distance
+def _start_winding(mesh: wp.uint64, p: wp.vec3, centre: wp.vec3, reach: float, accuracy: float):
+    """Winding number where a chain starts: 0 outside the mesh's box (no query), else the fast
+    winding number rounded to an integer (meaningful away from the surface: callers check)."""
+    if wp.max(wp.abs(p - centre)) > reach:
+        return 0
+    return int(wp.round(_winding_number(mesh, p, accuracy)))
 
 
 @wp.func
@@ -188,15 +210,52 @@ def _queried_fraction(
 
 @wp.func
 @no_type_check
+def _row_side(plane: wp.vec3, flip: bool, p: wp.vec3, q: wp.vec3):
+    """:func:`_edge_plane`'s side for a segment along x from the voxel centre: the orientation
+    of the row's line around the edge in the (y, z) projection (``plane[0]``, the same for
+    either direction along x up to a sign that all three edges share), exact zeros broken as
+    if the line were moved by ``(e, e**2)``: by ``p_z - q_z``, then ``q_y - p_y`` (canonical
+    order), so a line through a vertex is inside exactly one of the projected faces around it.
+    """
+    first_y = wp.where(flip, q[1], p[1])
+    first_z = wp.where(flip, q[2], p[2])
+    second_y = wp.where(flip, p[1], q[1])
+    second_z = wp.where(flip, p[2], q[2])
+    orientation = plane[0]
+    if orientation == 0.0:
+        orientation = first_z - second_z
+    if orientation == 0.0:
+        orientation = second_y - first_y
+    return (orientation > 0.0) != flip
+
+
+@wp.func
+@no_type_check
 def _crossing_fraction(
     mesh: wp.uint64, vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), lower: wp.vec3, size: float,
-    voxel: wp.uint32, seed: wp.uint32, num_samples: int, strata: int, mid: wp.vec3, mid_winding: int, threshold: float,
+    voxel: wp.uint32, seed: wp.uint32, num_samples: int, strata: int, mid: wp.vec3, threshold: float, winding: int,
+    back: float, back_reach: float, forward: float,
 ):  # fmt: skip
+    """``(fraction, near, winding number at the next centre)`` of a marked voxel, in one pass
+    over its triangles per batch of samples.
+
+    ``winding`` is the winding number at ``mid + (back, 0, 0)`` (the previous centre, or ``mid``
+    itself with ``back = 0`` where a chain starts); ``back_reach`` widens the box towards
+    the previous voxel (its size where that one is marked, else 0: an unmarked voxel meets no
+    triangle); ``forward`` is the offset to the next centre where that voxel is unmarked, else 0
+    (a zero-length segment crosses nothing). ``near``: the centre is within ``SURFACE_GUARD``
+    voxel sizes of a triangle, and the other results are meaningless.
+    """
     slack = MARK_SLACK * size
+    guard = SURFACE_GUARD * size
     box_lower = lower - wp.vec3(slack, slack, slack)
     box_upper = lower + wp.vec3(size + slack, size + slack, size + slack)
     total = int(0)
+    near = bool(False)
+    mid_winding = winding
+    forward_change = int(0)
     for start in range(0, num_samples, BATCH):
+        chain = start == 0  # the segments and the distance, once
         count = wp.min(BATCH, num_samples - start)
         # Sample offsets from the centre, computed once per batch rather than once per triangle.
         dx = wp.vector(dtype=wp.float32, length=BATCH)
@@ -209,7 +268,11 @@ def _crossing_fraction(
             dz[r] = d[2]
         # Winding number change from the centre to each sample: the signed crossings.
         change = wp.vector(dtype=wp.int32, length=BATCH)
-        query = wp.mesh_query_aabb(mesh, box_lower, box_upper)
+        back_change = int(0)
+        query_lower = box_lower
+        if chain:
+            query_lower = wp.vec3(box_lower[0] - back_reach, box_lower[1], box_lower[2])
+        query = wp.mesh_query_aabb(mesh, query_lower, box_upper)
         f = int(0)
         while wp.mesh_query_next(query, f):
             ia = indices[3 * f]
@@ -225,17 +288,38 @@ def _crossing_fraction(
             plane_ab, flip_ab = _edge_plane(a, b, ia, ib)
             plane_bc, flip_bc = _edge_plane(b, c, ib, ic)
             plane_ca, flip_ca = _edge_plane(c, a, ic, ia)
-            for r in range(count):
-                d = wp.vec3(dx[r], dy[r], dz[r])
-                height = mid_height + wp.dot(normal, d)
-                if (mid_height < 0.0) != (height < 0.0):
-                    side_ab = (wp.dot(d, plane_ab) > 0.0) != flip_ab
-                    if side_ab == ((wp.dot(d, plane_bc) > 0.0) != flip_bc) and side_ab == ((wp.dot(d, plane_ca) > 0.0) != flip_ca):
-                        change[r] += step
+            if chain:
+                back_height = mid_height + normal[0] * back
+                forward_height = mid_height + normal[0] * forward
+                if (mid_height < 0.0) != (back_height < 0.0) or (mid_height < 0.0) != (forward_height < 0.0):
+                    side_ab = _row_side(plane_ab, flip_ab, a, b)
+                    if side_ab == _row_side(plane_bc, flip_bc, b, c) and side_ab == _row_side(plane_ca, flip_ca, c, a):
+                        if (mid_height < 0.0) != (back_height < 0.0):
+                            back_change += step
+                        if (mid_height < 0.0) != (forward_height < 0.0):
+                            forward_change += step
+                low = wp.min(wp.min(a, b), c)
+                high = wp.max(wp.max(a, b), c)
+                if wp.max(low) <= guard and wp.min(high) >= -guard:
+                    if triangle_distance_sq(wp.vec3(0.0, 0.0, 0.0), a, b, c) < guard * guard:
+                        near = True
+            # Samples lie in this voxel: triangles meeting only the previous voxel's box are skipped.
+            if wp.max(wp.max(vertices[ia][0], vertices[ib][0]), vertices[ic][0]) >= box_lower[0]:
+                for r in range(count):
+                    d = wp.vec3(dx[r], dy[r], dz[r])
+                    height = mid_height + wp.dot(normal, d)
+                    if (mid_height < 0.0) != (height < 0.0):
+                        side_ab = (wp.dot(d, plane_ab) > 0.0) != flip_ab
+                        if side_ab == ((wp.dot(d, plane_bc) > 0.0) != flip_bc) and side_ab == ((wp.dot(d, plane_ca) > 0.0) != flip_ca):
+                            change[r] += step
+        if near:
+            break
+        # The segment centre -> previous centre changes the winding number by back_change.
+        mid_winding = mid_winding - back_change
         for r in range(count):
             if float(mid_winding + change[r]) > threshold:
                 total += _sample_weight(start + r, num_samples, strata)
-    return float(total) / float(_weight_total(num_samples, strata))
+    return float(total) / float(_weight_total(num_samples, strata)), near, mid_winding + forward_change
 
 
 @wp.kernel
@@ -286,33 +370,76 @@ def _row_kernel(
     centre = wp.vec3(params[6], params[7], params[8])
     reach = params[9]
     half = wp.vec3(0.5 * size, 0.5 * size, 0.5 * size)
-    run_state = int(-1)  # state of the current run of unmarked voxels (closed meshes), -1: none
-    for i in range(nx):
-        lower = origin + size * wp.vec3(float(i), float(j), float(k))
-        voxel = i + nx * row
-        if marked[voxel] == 0:
-            if run_state < 0 or open_mesh != 0:
-                mid = lower + half
-                if open_mesh == 0 and wp.max(wp.abs(mid - centre)) > reach:
-                    # Outside the mesh's bounding box: outside a closed mesh, no query needed.
-                    run_state = 0
-                else:
-                    inside, _distance = _query_inside(mesh, mid, centre, reach, accuracy, threshold)
-                    run_state = wp.where(inside, 1, 0)
-            fractions[voxel] = float(run_state)
-            continue
-        run_state = -1
-        fraction = float(0.0)
-        if open_mesh != 0:
-            fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, accuracy, threshold)
-        else:
-            mid = lower + half
-            mid_winding, distance = _query_winding(mesh, mid, centre, reach, accuracy)
-            if distance < SURFACE_GUARD * size:
-                fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, accuracy, threshold)
+    if open_mesh != 0:
+        for i in range(nx):
+            lower = origin + size * wp.vec3(float(i), float(j), float(k))
+            voxel = i + nx * row
+            if marked[voxel] == 0:
+                inside, _distance = _query_inside(mesh, lower + half, centre, reach, accuracy, threshold)
+                fractions[voxel] = wp.where(inside, 1.0, 0.0)
             else:
-                fraction = _crossing_fraction(mesh, vertices, indices, lower, size, wp.uint32(voxel), seed, num_samples, strata, mid, mid_winding, threshold)
-        fractions[voxel] = fraction
+                fractions[voxel] = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, accuracy, threshold)
+        return
+    # Closed meshes: the winding number is carried along the row (module docstring); a row
+    # whose chain disagrees with a query where it ends is walked again, anchored: a query at
+    # every marked centre and after every marked voxel.
+    for attempt in range(2):
+        anchored = attempt == 1
+        consistent = bool(True)
+        # `winding`, where `chained`: the previous centre's winding number, already carried to
+        # this centre where this voxel is unmarked; `linked`: counted over a triangle since the
+        # chain's query.
+        chained = bool(False)
+        linked = bool(False)
+        previous_marked = bool(False)
+        winding = int(0)
+        for i in range(nx):
+            lower = origin + size * wp.vec3(float(i), float(j), float(k))
+            voxel = i + nx * row
+            mid = lower + half
+            if marked[voxel] == 0:
+                # No triangle between this centre and the previous one when that voxel is
+                # unmarked too; a marked previous voxel counted the crossings on the way here.
+                if not chained:
+                    winding = _start_winding(mesh, mid, centre, reach, accuracy)
+                    linked = False
+                fractions[voxel] = wp.where(float(winding) > threshold, 1.0, 0.0)
+                chained = True
+                previous_marked = False
+                continue
+            back = float(0.0)
+            back_reach = float(0.0)
+            if chained and not anchored:
+                back = (origin[0] + size * float(i - 1) + half[0]) - mid[0]
+                back_reach = wp.where(previous_marked, size, 0.0)
+            else:
+                winding = _start_winding(mesh, mid, centre, reach, accuracy)
+                linked = False
+            forward = float(0.0)
+            if i + 1 < nx and not anchored:
+                if marked[voxel + 1] == 0:
+                    forward = (origin[0] + size * float(i + 1) + half[0]) - mid[0]
+            fraction, near, next_winding = _crossing_fraction(
+                mesh, vertices, indices, lower, size, wp.uint32(voxel), seed, num_samples, strata, mid, threshold, winding, back, back_reach, forward
+            )
+            if near:
+                # The chain ends at the previous centre: check it there.
+                if chained and linked:
+                    previous_mid = wp.vec3(origin[0] + size * float(i - 1) + half[0], mid[1], mid[2])
+                    if _start_winding(mesh, previous_mid, centre, reach, accuracy) != winding:
+                        consistent = False
+                        break
+                fraction = _queried_fraction(mesh, lower, size, wp.uint32(voxel), seed, num_samples, strata, centre, reach, accuracy, threshold)
+            fractions[voxel] = fraction
+            linked = linked or back != 0.0 or forward != 0.0
+            winding = next_winding
+            chained = not (near or anchored)
+            previous_marked = True
+        if consistent and chained and linked and not anchored:
+            last_mid = origin + size * wp.vec3(float(nx - 1), float(j), float(k)) + half
+            consistent = _start_winding(mesh, last_mid, centre, reach, accuracy) == winding
+        if consistent:
+            break
 
 
 def _fraction_types(scalar, open_mesh: bool) -> dict:

@@ -89,9 +89,11 @@ def mesh_to_voxel_fraction(
         implementation: ``"warp"``, ``"jax"`` (also ``"torch"``) or ``None``. Warp builds a BVH
             of the mesh in float32 (in the call) and samples only voxels near the surface; in
             closed mode a sample's winding number is its voxel centre's plus the signed
-            crossings of the triangles on the way (one BVH query per voxel instead of one per
-            sample; right where parts of the mesh overlap), and runs of voxels away from the
-            surface share one query. Open mode costs one winding-number query per sample,
+            crossings of the triangles on the way (one box query per voxel instead of a query
+            per sample; right where parts of the mesh overlap), and each centre's is the
+            previous centre's along the grid row plus the same counts, so the winding number
+            is queried only at a row's first voxel (not outside the mesh's box) and after a
+            centre on the surface. Open mode costs one winding-number query per sample,
             plus a host-side orientation pass. The JAX backend is a brute-force reference for
             small problems: it evaluates every centre and sample against every triangle
             (O(grid x samples x F)), in the vertices' dtype.

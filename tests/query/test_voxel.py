@@ -98,6 +98,87 @@ def test_samples_across_an_inner_face_of_overlapping_closed_parts(implementation
 
 
 @pytest.mark.parametrize("implementation", BACKENDS)
+def test_centres_on_faces_of_overlapping_closed_parts(implementation):
+    # Warp's closed mode carries the winding number along each row and restarts it with a fresh
+    # query after a centre on the surface (its voxel queries every sample). Cubes A = [0, 1]^3 and
+    # B = A + 3/16, one mesh, voxel size 1/4 from -3/8: A's faces pass through voxel centres (2
+    # mod 4 sixteenths from the origin), B's through voxels on sub-cube boundaries (1 mod 4).
+    # On the row y = z = 1/2 the centre x = 0 lies on A, and the next voxel (x = 1/4, marked by
+    # B's face at 3/16) restarts in A & B with winding number 2: a restart that kept only the
+    # inside state (1) would read its samples behind B's face (in A only) as outside. As in the
+    # test above, every face lies on a sub-cube boundary, so the estimate equals the exact fraction.
+    shift, size, origin, grid = 0.1875, 0.25, -0.375, (8, 8, 8)
+    vertices = jnp.asarray(np.concatenate([CUBE, CUBE + shift]))
+    faces = jnp.asarray(np.concatenate([CUBE_FACES, CUBE_FACES + len(CUBE)]))
+    fractions = mesh_to_voxel_fraction(vertices, faces, [origin] * 3, size, grid, n_samples=64, implementation=implementation)
+    _lower, samples = sample_points(jnp.full(3, origin, jnp.float32), size, grid, 64, 4, 42)
+    assert not np.isin(np.asarray(samples), np.float32([0.0, shift, 1.0, 1.0 + shift])).any()
+    k, j, i = np.meshgrid(*(np.arange(8.0),) * 3, indexing="ij")
+    lower = origin + size * np.stack([i, j, k], axis=-1)
+    upper = lower + size
+    in_a, in_b = _box_overlap(lower, upper, 0.0, 1.0), _box_overlap(lower, upper, shift, 1.0 + shift)
+    exact = (in_a + in_b - _box_overlap(lower, upper, shift, 1.0)) / size**3
+    np.testing.assert_allclose(np.asarray(fractions), exact, rtol=0, atol=1e-6)
+    # The row y = z = 1/2, as described: centre x = 0 on A's face, then the restart in A & B.
+    np.testing.assert_array_equal(np.asarray(fractions)[3, 3], [0.0, 0.5, 1.0, 1.0, 1.0, 1.0, 0.25, 0.0])
+
+
+def _octahedron(centre, rng):
+    """A closed octahedron (unit radius, outward faces) with its vertices and each face's
+    corners in a random order, so that every canonical edge order occurs."""
+    corners = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    faces = []
+    for sx, sy, sz in np.ndindex(2, 2, 2):
+        face = [sx, 2 + sy, 4 + sz]
+        faces.append(face if (sx + sy + sz) % 2 == 0 else face[::-1])
+    order = rng.permutation(6)  # new index of each corner
+    vertices = np.empty_like(corners)
+    vertices[order] = corners + centre
+    faces = np.array([np.roll(order[f], rng.integers(3)) for f in faces])
+    return vertices, faces
+
+
+def test_rows_through_mesh_vertices_count_each_crossing_once():
+    # Warp carries the winding number along each row by counting crossings; here the row's line
+    # passes exactly through the octahedra's tips (shared by four faces), where a crossing must
+    # count once whatever the vertex order. The JAX path (every sample's own winding number) is
+    # the reference; 40 random vertex and corner orders.
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        first, second = _octahedron([0.0, 0.0, 0.0], rng), _octahedron([3.0, 0.0, 0.0], rng)
+        vertices = np.concatenate([first[0], second[0]])
+        faces = jnp.asarray(np.concatenate([first[1], second[1] + 6]))
+        options = dict(origin=[-1.5, -0.25, -0.25], voxel_size=0.5, grid_dims=(10, 1, 1), n_samples=27)
+        warp = mesh_to_voxel_fraction(jnp.asarray(vertices, jnp.float32), faces, **options, implementation="warp")
+        reference = mesh_to_voxel_fraction(jnp.asarray(vertices), faces, **options, implementation="jax")
+        np.testing.assert_allclose(np.asarray(warp), np.asarray(reference), rtol=0, atol=1e-6)
+
+
+def test_a_hole_in_a_closed_mode_mesh_stays_local():
+    # A sphere with a small hole at (-1, 0, 0) (6 faces removed; the voxels around it are still
+    # marked by its rim), voxelised in closed mode: rows through the hole enter the sphere without
+    # crossing a triangle. Warp's row chain must not carry that miscount along the row (it checks
+    # each chain against a query where it ends, and walks a failing row again with a query per
+    # marked centre): away from the hole, where the winding number is within the hole's solid
+    # angle (< 0.05) of 0 or 1, Warp agrees with the JAX path (each sample's own winding number).
+    # Without the check, 44 of these voxels read outside.
+    vertices, faces = _sphere(3)
+    points = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces)
+    hole = np.array([-1.0, 0.0, 0.0])
+    kept = faces[np.linalg.norm(points[faces].mean(axis=1) - hole, axis=1) > 0.1]
+    options = dict(origin=[-1.2] * 3, voxel_size=0.15, grid_dims=(16, 16, 16), n_samples=8)
+    warp = np.asarray(mesh_to_voxel_fraction(jnp.asarray(points, jnp.float32), jnp.asarray(kept), **options, implementation="warp"))
+    reference = np.asarray(mesh_to_voxel_fraction(jnp.asarray(points), jnp.asarray(kept), **options, implementation="jax"))
+    centres = -1.2 + 0.15 * (np.arange(16) + 0.5)
+    z, y, x = np.meshgrid(centres, centres, centres, indexing="ij")
+    far = np.sqrt((x - hole[0]) ** 2 + (y - hole[1]) ** 2 + (z - hole[2]) ** 2) > 0.45
+    through_hole = far & (np.abs(y) < 0.2) & (np.abs(z) < 0.2) & (np.abs(x) < 0.8)
+    assert through_hole.sum() >= 8 and reference[through_hole].min() == 1.0  # rows past the hole, inside
+    np.testing.assert_allclose(warp[far], reference[far], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
 def test_z_major_layout_and_stratified_exact_half(implementation):
     # Box x in [0, 1.5] on a grid of unit voxels starting at x = 0: voxel 0 is inside, voxel 1
     # half inside (the box face lies on a sub-cube boundary, so stratified samples give exactly
