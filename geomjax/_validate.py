@@ -159,7 +159,10 @@ def check_real_scalar(name: str, value, dtype, *, positive: bool = False, nonneg
     """
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # a Python int (or Fraction) beyond every float: out of range, not a crash
+        raise ValueError(f"{name} must be finite, got a number beyond the range of every float ({str(value)[:12]}...)") from None
     if not math.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value}")
     info = jnp.finfo(dtype)
@@ -290,9 +293,15 @@ def check_host_surface(op_name: str, mesh_vertices, mesh_indices, *, min_vertice
 
 
 def check_host_vertex_field(op_name: str, name: str, value, vertices: jax.Array) -> np.ndarray | None:
-    """``None`` stays ``None``; otherwise a finite, positive ``(V,)`` field as a float64 host array."""
+    """``None`` stays ``None``; otherwise a finite, positive ``(V,)`` field as a float64 host array.
+
+    Any real floating dtype is accepted (float16, bfloat16, the float8 types too, as the reference
+    accepts any real floating-point density): the field is read on the host in float64 anyway.
+    """
     if value is None:
         return None
+    if is_array(value) and jnp.issubdtype(value.dtype, jnp.floating) and jnp.dtype(value.dtype) not in FLOAT_DTYPES:
+        value = jnp.asarray(value).astype(jnp.float32)  # exact: every narrower float is a float32
     field = as_float_array(name, value)
     if isinstance(field, jax.core.Tracer):
         raise TypeError(f"{op_name} runs eagerly: {name} must be concrete")

@@ -557,6 +557,24 @@ def test_bad_option_is_a_value_error(name, implementation):
         c.function(**kwargs)
 
 
+def _real_options(name):
+    """The case's real options: Python floats and lists of floats (box origins, extents)."""
+    fixed = CASES[name](jnp.float32).fixed
+    return [k for k, v in fixed.items() if isinstance(v, float) or (isinstance(v, list) and all(isinstance(e, float) for e in v))]
+
+
+@pytest.mark.parametrize("name", [n for n in NAMES if _real_options(n)])
+def test_python_integers_beyond_every_float_are_a_value_error(name):
+    # A Python int too large for any float (10**400) given for a real option: the documented
+    # ValueError, never float()'s OverflowError. Every real option of the case (scalars and
+    # the entries of box sequences).
+    c = case(name, "f32")
+    for key in _real_options(name):
+        huge = 10**400 if isinstance(c.fixed[key], float) else [10**400, *c.fixed[key][1:]]
+        with pytest.raises(ValueError, match=f"{key}.*must be finite"):
+            c.call(*c.arrays, fixed={**c.fixed, key: huge})
+
+
 # ---------------------------------------------------------------------------------------------
 # torch_bridge: gradcheck and gradgradcheck with default arguments
 # ---------------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ast
 import inspect
+import math
 import numbers
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -40,7 +41,12 @@ def _static_normalizer(schema_type: str) -> Callable:
     def real(v):
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Real, torch.SymFloat, torch.SymInt)):
             return _BAD
-        return float(v) if isinstance(v, numbers.Real) else v
+        if not isinstance(v, numbers.Real):
+            return v
+        try:
+            return float(v)
+        except OverflowError:  # a Python int beyond every float: geomjax raises "must be finite"
+            return math.inf if v > 0 else -math.inf
 
     def integer(v):
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Integral, torch.SymInt)):

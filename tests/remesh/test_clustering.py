@@ -256,3 +256,22 @@ def test_mesh_remesh_resolution_field_and_errors():
         tetrahedralized_box(2, 2, 2).remesh(5)
     with pytest.raises(NotImplementedError):
         rectangle(3, 3).remesh(5)
+
+
+@pytest.mark.parametrize("implementation", ["jax", "warp"])
+def test_low_precision_vertex_density_is_accepted(implementation):
+    # The reference accepts any real floating-point density: float16, bfloat16 and float8 values
+    # are read exactly (each is a float32) and remesh as those values given in float32.
+    from tests.op_cases import CASES
+
+    case = CASES["remeshing"](jnp.float64)
+    vertices, faces, clusters = case.arrays[0], case.fixed["mesh_indices"], case.fixed["n_clusters"]
+    density = 0.5 + jnp.abs(vertices[:, 0])  # non-constant: a constant density is uniform remeshing
+    for dtype in (jnp.float16, jnp.bfloat16, jnp.float8_e4m3fn):
+        narrow = density.astype(dtype)
+        ours = remeshing(vertices, faces, clusters, vertex_density=narrow, implementation=implementation)
+        expected = remeshing(vertices, faces, clusters, vertex_density=narrow.astype(jnp.float32), implementation=implementation)
+        for a, b in zip(ours, expected):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=str(dtype))
+    with pytest.raises(TypeError, match="vertex_density"):
+        remeshing(vertices, faces, clusters, vertex_density=jnp.ones(len(vertices), jnp.int32), implementation=implementation)

@@ -268,3 +268,13 @@ def test_farthest_point_sampling_equals_geomjax():
     expected = geomjax.farthest_point_sampling(_jax(fps["points"]), count, start_index=2)
     np.testing.assert_array_equal(indices.numpy(), np.asarray(expected))
     assert indices[0] == 2 and len(set(indices.tolist())) == count
+
+
+def test_remeshing_accepts_low_precision_density():
+    # Any real floating dtype (the reference's contract), read exactly: as the same values in float32.
+    density = 0.5 + REMESH["mesh_vertices"][:, 0].abs()
+    for dtype in (torch.float16, torch.bfloat16):
+        narrow = torch_bridge.remeshing(REMESH["mesh_vertices"], FACES, CLUSTERS, vertex_density=density.to(dtype))
+        wide = torch_bridge.remeshing(REMESH["mesh_vertices"], FACES, CLUSTERS, vertex_density=density.to(dtype).float())
+        for a, b in zip(narrow, wide):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)

@@ -305,6 +305,18 @@ def test_python_option_types_raise_geomjax_errors(name):
             fn(**{**inputs, p.name: bad})
 
 
+@pytest.mark.parametrize("name", [n for n in NAMES if any((p.static_type or "").startswith("float") for p in OP_BY_NAME[n].parameters)])
+def test_python_integers_beyond_every_float_are_a_value_error(name):
+    # 10**400 for a real option: geomjax's ValueError, not float()'s (or torch's) OverflowError.
+    fn, inputs = public(name), inputs_of(name, torch.float32)
+    for p in OP_BY_NAME[name].parameters:
+        if not (p.static_type or "").startswith("float"):
+            continue
+        huge = [10**400, 1.0, 1.0] if p.static_type.startswith("float[]") else 10**400
+        with pytest.raises(ValueError, match=f"{p.name}.*must be finite"):
+            fn(**{**inputs, p.name: huge})
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_mismatched_devices_raise_value_error(name):
     fn, inputs = public(name), inputs_of(name, torch.float32)
