@@ -216,6 +216,9 @@ def check_topology(name: str, x, points: jax.Array, *, vertices_per_row: Sequenc
     return x
 
 
+_INT64_MAX = 2**63 - 1
+
+
 def check_integer(name: str, value, *, minimum: int) -> int:
     """A count option must be a Python/NumPy integer (``bool`` is a ``TypeError``) ``>= minimum``."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
@@ -223,6 +226,8 @@ def check_integer(name: str, value, *, minimum: int) -> int:
     value = int(value)
     if value < minimum:
         raise ValueError(f"{name} must be at least {minimum}, got {value}")
+    if value > _INT64_MAX:  # no count, size or seed beyond int64 can reach a kernel or an array
+        raise ValueError(f"{name} must be at most 2**63 - 1, got an integer of {len(str(value))} digits")
     return value
 
 

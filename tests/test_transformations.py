@@ -563,6 +563,21 @@ def _real_options(name):
     return [k for k, v in fixed.items() if isinstance(v, float) or (isinstance(v, list) and all(isinstance(e, float) for e in v))]
 
 
+def _integer_options(name):
+    fixed = CASES[name](jnp.float32).fixed
+    return [k for k, v in fixed.items() if isinstance(v, int) and not isinstance(v, bool)]
+
+
+@pytest.mark.parametrize("name", [n for n in NAMES if _integer_options(n)])
+def test_integers_beyond_int64_are_a_value_error(name):
+    # Counts, sizes and seeds: a Python int beyond int64 raises ValueError before anything runs
+    # (remeshing looped without end on max_iterations=10**400).
+    c = case(name, "f32")
+    for key in _integer_options(name):
+        with pytest.raises(ValueError, match=f"{key} must be at most"):
+            c.call(*c.arrays, fixed={**c.fixed, key: 10**400})
+
+
 @pytest.mark.parametrize("name", [n for n in NAMES if _real_options(n)])
 def test_python_integers_beyond_every_float_are_a_value_error(name):
     # A Python int too large for any float (10**400) given for a real option: the documented

@@ -51,7 +51,10 @@ def _static_normalizer(schema_type: str) -> Callable:
     def integer(v):
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Integral, torch.SymInt)):
             return _BAD
-        return int(v) if isinstance(v, numbers.Integral) else v
+        if not isinstance(v, numbers.Integral):
+            return v
+        # An int64 slot cannot hold more: geomjax's check then raises its ValueError.
+        return int(v) if -(2**63) <= v < 2**63 else _BAD
 
     def boolean(v):
         return bool(v) if isinstance(v, (bool, np.bool_)) else _BAD
