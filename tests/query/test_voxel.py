@@ -71,56 +71,54 @@ def _box_overlap(lower, upper, box_lower, box_upper):
     return np.prod(np.clip(np.minimum(upper, box_upper) - np.maximum(lower, box_lower), 0.0, None), axis=-1)
 
 
-@pytest.mark.parametrize("implementation", BACKENDS)
-def test_samples_across_an_inner_face_of_overlapping_closed_parts(implementation):
-    # Regression: Warp's closed mode flipped the voxel centre's inside state by the parity of the
-    # triangles crossed on the way to a sample. Cubes A = [0, 1]^3 and B = A + 0.25, one mesh, have
-    # winding number 2 in A & B, so a sample one crossing away from a centre in A & B (e.g.
-    # (0.375, 0.375, 0.375), 0.125 inside B's lower faces) has winding number 1 and is inside.
-    # Every face lies on an odd multiple of 1/8 from the origin: never on a voxel face or centre
-    # (multiples of 1/4, voxel size 1/2), always on a boundary of the 4 x 4 x 4 sub-cubes (1/8) of
-    # the stratified sampling. Each sub-cube is then wholly inside the union or wholly outside,
-    # so its one sample says which, and the estimate equals the exact (analytic) fraction.
-    shift, size, origin, grid = 0.25, 0.5, -0.375, (4, 4, 4)
+def _overlapping_cubes(shift, size, origin, n, implementation):
+    """Fractions of cubes A = [0, 1]^3 and B = A + shift (one mesh) on an ``n^3`` grid with 64
+    samples, and the exact fractions (vol(A & V) + vol(B & V) - vol(A & B & V)) / vol(V).
+
+    The callers place every face on a boundary of the 4 x 4 x 4 sub-cubes of the stratified
+    sampling: each sub-cube is then wholly inside the union or wholly outside, its one sample
+    says which, and the estimate equals the exact fraction.
+    """
     vertices = jnp.asarray(np.concatenate([CUBE, CUBE + shift]))
     faces = jnp.asarray(np.concatenate([CUBE_FACES, CUBE_FACES + len(CUBE)]))
-    fractions = mesh_to_voxel_fraction(vertices, faces, [origin] * 3, size, grid, n_samples=64, implementation=implementation)
+    fractions = mesh_to_voxel_fraction(vertices, faces, [origin] * 3, size, (n, n, n), n_samples=64, implementation=implementation)
     # Precondition: no sample lies on a face's plane (float32 rounding could put one there).
-    _lower, samples = sample_points(jnp.full(3, origin, jnp.float32), size, grid, 64, 4, 42)
+    _lower, samples = sample_points(jnp.full(3, origin, jnp.float32), size, (n, n, n), 64, 4, 42)
     assert not np.isin(np.asarray(samples), np.float32([0.0, shift, 1.0, 1.0 + shift])).any()
-    k, j, i = np.meshgrid(*(np.arange(4.0),) * 3, indexing="ij")
+    k, j, i = np.meshgrid(*(np.arange(float(n)),) * 3, indexing="ij")
     lower = origin + size * np.stack([i, j, k], axis=-1)
     upper = lower + size
     in_a, in_b = _box_overlap(lower, upper, 0.0, 1.0), _box_overlap(lower, upper, shift, 1.0 + shift)
-    exact = (in_a + in_b - _box_overlap(lower, upper, shift, 1.0)) / size**3
-    np.testing.assert_allclose(np.asarray(fractions), exact, rtol=0, atol=1e-6)
+    return np.asarray(fractions), (in_a + in_b - _box_overlap(lower, upper, shift, 1.0)) / size**3
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+def test_samples_across_an_inner_face_of_overlapping_closed_parts(implementation):
+    # Regression: Warp's closed mode flipped the voxel centre's inside state by the parity of the
+    # triangles crossed on the way to a sample. Cubes A and B = A + 0.25 have winding number 2 in
+    # A & B, so a sample one crossing away from a centre in A & B (e.g. (0.375, 0.375, 0.375),
+    # 0.125 inside B's lower faces) has winding number 1 and is inside. Every face lies on an odd
+    # multiple of 1/8 from the origin: never on a voxel face or centre (multiples of 1/4, voxel
+    # size 1/2), always on a sub-cube boundary (1/8).
+    shift, size = 0.25, 0.5
+    fractions, exact = _overlapping_cubes(shift, size, -0.375, 4, implementation)
+    np.testing.assert_allclose(fractions, exact, rtol=0, atol=1e-6)
     assert abs(float(fractions.sum()) * size**3 - (2.0 - (1.0 - shift) ** 3)) < 1e-6
 
 
 @pytest.mark.parametrize("implementation", BACKENDS)
 def test_centres_on_faces_of_overlapping_closed_parts(implementation):
     # Warp's closed mode carries the winding number along each row and restarts it with a fresh
-    # query after a centre on the surface (its voxel queries every sample). Cubes A = [0, 1]^3 and
-    # B = A + 3/16, one mesh, voxel size 1/4 from -3/8: A's faces pass through voxel centres (2
-    # mod 4 sixteenths from the origin), B's through voxels on sub-cube boundaries (1 mod 4).
-    # On the row y = z = 1/2 the centre x = 0 lies on A, and the next voxel (x = 1/4, marked by
-    # B's face at 3/16) restarts in A & B with winding number 2: a restart that kept only the
-    # inside state (1) would read its samples behind B's face (in A only) as outside. As in the
-    # test above, every face lies on a sub-cube boundary, so the estimate equals the exact fraction.
-    shift, size, origin, grid = 0.1875, 0.25, -0.375, (8, 8, 8)
-    vertices = jnp.asarray(np.concatenate([CUBE, CUBE + shift]))
-    faces = jnp.asarray(np.concatenate([CUBE_FACES, CUBE_FACES + len(CUBE)]))
-    fractions = mesh_to_voxel_fraction(vertices, faces, [origin] * 3, size, grid, n_samples=64, implementation=implementation)
-    _lower, samples = sample_points(jnp.full(3, origin, jnp.float32), size, grid, 64, 4, 42)
-    assert not np.isin(np.asarray(samples), np.float32([0.0, shift, 1.0, 1.0 + shift])).any()
-    k, j, i = np.meshgrid(*(np.arange(8.0),) * 3, indexing="ij")
-    lower = origin + size * np.stack([i, j, k], axis=-1)
-    upper = lower + size
-    in_a, in_b = _box_overlap(lower, upper, 0.0, 1.0), _box_overlap(lower, upper, shift, 1.0 + shift)
-    exact = (in_a + in_b - _box_overlap(lower, upper, shift, 1.0)) / size**3
-    np.testing.assert_allclose(np.asarray(fractions), exact, rtol=0, atol=1e-6)
+    # query after a centre on the surface (its voxel queries every sample). Cubes A and
+    # B = A + 3/16, voxel size 1/4 from -3/8: A's faces pass through voxel centres (2 mod 4
+    # sixteenths from the origin), B's through voxels on sub-cube boundaries (1 mod 4). On the
+    # row y = z = 1/2 the centre x = 0 lies on A, and the next voxel (x = 1/4, marked by B's face
+    # at 3/16) restarts in A & B with winding number 2: a restart that kept only the inside state
+    # (1) would read its samples behind B's face (in A only) as outside.
+    fractions, exact = _overlapping_cubes(0.1875, 0.25, -0.375, 8, implementation)
+    np.testing.assert_allclose(fractions, exact, rtol=0, atol=1e-6)
     # The row y = z = 1/2, as described: centre x = 0 on A's face, then the restart in A & B.
-    np.testing.assert_array_equal(np.asarray(fractions)[3, 3], [0.0, 0.5, 1.0, 1.0, 1.0, 1.0, 0.25, 0.0])
+    np.testing.assert_array_equal(fractions[3, 3], [0.0, 0.5, 1.0, 1.0, 1.0, 1.0, 0.25, 0.0])
 
 
 def _octahedron(centre, rng):
