@@ -169,6 +169,22 @@ _PROFILE_PATH = os.environ.get("GEOMJAX_TEST_PROFILE")
 _PER_TEST = dict.fromkeys(_COMPILES, 0.0)
 
 
+# With the profile on, each backend compile is also charged to the line that caused it: the first
+# frame of this repository outside the virtual environment (an eager ``jnp`` call compiles a
+# one-primitive program there). ``tools/profile_tests.py --by site`` sums them.
+_PER_TEST_SITES: dict[str, list[float]] = {}
+_REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
+
+
+def _compile_site() -> str:
+    import traceback
+
+    for frame in reversed(traceback.extract_stack()[:-2]):
+        if frame.filename.startswith(_REPO) and f"{os.sep}.venv{os.sep}" not in frame.filename and not frame.filename.endswith("conftest.py"):
+            return f"{frame.filename[len(_REPO):]}:{frame.lineno}"
+    return "?"
+
+
 def _count_compile(event: str, duration: float, **_) -> None:
     key = _DURATION_KEYS.get(event)
     if key is None:
@@ -178,6 +194,10 @@ def _count_compile(event: str, duration: float, **_) -> None:
     if key == "seconds":
         _COMPILES["programs"] += 1
         _PER_TEST["programs"] += 1
+        if _PROFILE_PATH:
+            count_and_seconds = _PER_TEST_SITES.setdefault(_compile_site(), [0, 0.0])
+            count_and_seconds[0] += 1
+            count_and_seconds[1] += duration
 
 
 def _count_cache_hit(event: str, **_) -> None:
@@ -197,9 +217,10 @@ if _PROFILE_PATH:
     @pytest.hookimpl(hookwrapper=True)
     def pytest_runtest_protocol(item, nextitem):
         _PER_TEST.update(dict.fromkeys(_PER_TEST, 0.0))
+        _PER_TEST_SITES.clear()
         start = time.perf_counter()
         yield
-        record = {"test": item.nodeid, "wall": time.perf_counter() - start, **_PER_TEST}
+        record = {"test": item.nodeid, "wall": time.perf_counter() - start, **_PER_TEST, "sites": dict(_PER_TEST_SITES)}
         with open(_PROFILE_PATH, "a") as profile:
             profile.write(json.dumps(record) + "\n")
 
