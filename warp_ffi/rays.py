@@ -37,7 +37,7 @@ def _ray_kernel(
     _, t = wp.tid()
     i = t + offset
     o = origins[i]
-    zero = o - o
+    zero = points_out.dtype()  # not o - o: a NaN or infinite origin must still miss with zeros
     faces_out[i] = -1
     t_out[i] = zero[0]
     points_out[i] = zero

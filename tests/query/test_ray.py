@@ -51,6 +51,23 @@ def test_reference_conventions(implementation):
     np.testing.assert_array_equal(hit, [True, False, False, False, False, False])
 
 
+@pytest.mark.parametrize("implementation", ["jax", "warp"])
+def test_non_finite_rays_miss_with_the_documented_encoding(implementation):
+    # NaN or infinite origins and directions are misses: mask False, face -1, distance +inf, zero
+    # point and normal (Warp wrote NaN points and normals for them); the finite rays still hit.
+    vertices, faces = _sphere(jnp.float64)
+    nan, inf = np.nan, np.inf
+    origins = jnp.array([[nan, 0, 0], [inf, 0, 0], [0.0, 0, 0], [0.0, 0, 0], [0.0, -inf, 0], [0.0, 0, -3]])
+    directions = jnp.array([[0.0, 0, 1], [0.0, 0, 1], [nan, 0, 1], [0.0, inf, 0], [0.0, 1, 0], [0.0, 0, 1]])
+    hit, distance, points, face_ids, normals = ray_mesh_intersect(vertices, faces, origins, directions, implementation=implementation)
+    np.testing.assert_array_equal(hit, [False] * 5 + [True])
+    np.testing.assert_array_equal(np.asarray(distance)[:5], np.inf)
+    np.testing.assert_array_equal(np.asarray(face_ids)[:5], -1)
+    np.testing.assert_array_equal(np.asarray(points)[:5], 0.0)
+    np.testing.assert_array_equal(np.asarray(normals)[:5], 0.0)
+    np.testing.assert_allclose(np.asarray(points)[5], [0, 0, -1], atol=1e-12)
+
+
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_warp_matches_brute_force(dtype):
     vertices, faces = _sphere(dtype)
