@@ -559,12 +559,12 @@ def test_bad_option_is_a_value_error(name, implementation):
 
 def _real_options(name):
     """The case's real options: Python floats and lists of floats (box origins, extents)."""
-    fixed = CASES[name](jnp.float32).fixed
+    fixed = case(name, "f32").fixed
     return [k for k, v in fixed.items() if isinstance(v, float) or (isinstance(v, list) and all(isinstance(e, float) for e in v))]
 
 
 def _integer_options(name):
-    fixed = CASES[name](jnp.float32).fixed
+    fixed = case(name, "f32").fixed
     return [k for k, v in fixed.items() if isinstance(v, int) and not isinstance(v, bool)]
 
 

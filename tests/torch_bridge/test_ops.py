@@ -8,6 +8,8 @@ gradgradcheck, opcheck, torch.compile, errors).
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,13 +28,10 @@ NAMES = [op.name for op in OPS]
 TORCH_DTYPES = {torch.float32: jnp.float32, torch.float64: jnp.float64}
 
 
+@functools.cache
 def case(name):
+    """The op's float64 case (its shapes, names and options; tensors come from ``torch_inputs``)."""
     return CASES[name](jnp.float64)
-
-
-def inputs_of(name, dtype=torch.float64, variant="arrays"):
-    """The case's keyword inputs as tensors (see ``tests/op_cases.py``)."""
-    return torch_inputs(name, dtype, variant)
 
 
 # Ops with per-point weights: the deformations x' = x + w u (the weight and empty-input tests).
@@ -115,7 +114,7 @@ def test_custom_op_is_registered(name):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
 @pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
 def test_values_and_gradients_equal_geomjax(name, implementation, dtype):
-    base = {**inputs_of(name, dtype), "implementation": implementation}
+    base = {**torch_inputs(name, dtype), "implementation": implementation}
     names = differentiable(name, base)
     plain = public(name)(**base)  # no input requires grad: the forward without residuals
     inputs = with_grad(base, names)
@@ -144,7 +143,7 @@ def test_values_and_gradients_equal_geomjax(name, implementation, dtype):
 
 @pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
 def test_batched_values_equal_geomjax(name, implementation):
-    inputs = {**inputs_of(name, torch.float64, "batched"), "implementation": implementation}
+    inputs = {**torch_inputs(name, torch.float64, "batched"), "implementation": implementation}
     out = public(name)(**inputs)
     expected = np.asarray(geomjax_reference(name, inputs))
     assert_trees_close(out.numpy(), expected, jnp.float64, size(name))
@@ -152,7 +151,7 @@ def test_batched_values_equal_geomjax(name, implementation):
 
 @pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
 def test_gradcheck(name, implementation):
-    inputs = {**inputs_of(name, torch.float64), "implementation": implementation}
+    inputs = {**torch_inputs(name, torch.float64), "implementation": implementation}
     names = differentiable(name, inputs)
     tensors = [inputs[k].detach().clone().requires_grad_() for k in names]
     assert torch.autograd.gradcheck(function_of(name, inputs, names), tensors)
@@ -162,7 +161,7 @@ def test_gradcheck(name, implementation):
 def test_gradgradcheck_default(name):
     # The default implementation: double backward is what a user's default call must support,
     # whichever backend serves the first order (a Warp default's second order is the JAX path's).
-    inputs = inputs_of(name, torch.float64)
+    inputs = torch_inputs(name, torch.float64)
     # Every differentiable input, as test_opcheck_backward_op's call of the VJP op: the two tests
     # then share their second-order programs (compiling those is nearly all of their cost).
     names = differentiable(name, inputs)
@@ -172,7 +171,7 @@ def test_gradgradcheck_default(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_implementation_torch_means_jax(name):
-    inputs = inputs_of(name, torch.float64)
+    inputs = torch_inputs(name, torch.float64)
     torch.testing.assert_close(
         public(name)(**inputs, implementation="torch"), public(name)(**inputs, implementation="jax"), rtol=0, atol=0
     )
@@ -180,7 +179,7 @@ def test_implementation_torch_means_jax(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_only_requested_gradients_are_returned(name):
-    base = inputs_of(name, torch.float64)
+    base = torch_inputs(name, torch.float64)
     names = differentiable(name, base)
     inputs = with_grad(base, names[-1:])  # only the last differentiable input requires grad
     out = public(name)(**inputs)
@@ -197,7 +196,7 @@ def test_only_requested_gradients_are_returned(name):
 
 @pytest.mark.parametrize("name", WEIGHTED)
 def test_bool_weights_are_a_non_differentiable_mask(name):
-    base = inputs_of(name, torch.float64)
+    base = torch_inputs(name, torch.float64)
     mask = torch.zeros(base["points"].shape[:-1], dtype=torch.bool)
     mask[::2] = True
     base = {**base, "point_weights": mask}
@@ -213,7 +212,7 @@ def test_bool_weights_are_a_non_differentiable_mask(name):
 
 @pytest.mark.parametrize("name", WEIGHTED)
 def test_float_weights_get_gradients(name):
-    base = inputs_of(name, torch.float64)
+    base = torch_inputs(name, torch.float64)
     inputs = with_grad(base, ["point_weights"])
     out = public(name)(**inputs)
     (grad,) = torch.autograd.grad(out.sum(), inputs["point_weights"])
@@ -224,7 +223,7 @@ def test_float_weights_get_gradients(name):
 
 @pytest.mark.parametrize("name", WEIGHTED)
 def test_empty_points(name):
-    base = inputs_of(name, torch.float64, "empty")
+    base = torch_inputs(name, torch.float64, "empty")
     names = differentiable(name, base)
     inputs = with_grad(base, names)
     out = public(name)(**inputs)
@@ -236,7 +235,7 @@ def test_empty_points(name):
 
 @pytest.mark.parametrize("name", WITH_CONTROLS)
 def test_zero_controls_is_identity_with_defined_gradients(name):
-    base = inputs_of(name, torch.float64, "no_controls")
+    base = torch_inputs(name, torch.float64, "no_controls")
     names = differentiable(name, base)
     inputs = with_grad(base, names)
     out = public(name)(**inputs)
@@ -253,7 +252,7 @@ def test_zero_controls_is_identity_with_defined_gradients(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_error_types(name):
-    fn, inputs = public(name), inputs_of(name, torch.float32)
+    fn, inputs = public(name), torch_inputs(name, torch.float32)
     second = next(k for k in differentiable(name, inputs) if k != "points")
     with pytest.raises(TypeError):
         fn(**{**inputs, "points": inputs["points"].half()})
@@ -293,7 +292,7 @@ def test_error_types(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_python_option_types_raise_geomjax_errors(name):
-    fn, inputs = public(name), inputs_of(name, torch.float32)
+    fn, inputs = public(name), torch_inputs(name, torch.float32)
     op = OP_BY_NAME[name]
     for p in op.parameters:
         if p.static_type is None or p.name == "implementation":
@@ -308,7 +307,7 @@ def test_python_option_types_raise_geomjax_errors(name):
 @pytest.mark.parametrize("name", [n for n in NAMES if any((p.static_type or "").startswith("float") for p in OP_BY_NAME[n].parameters)])
 def test_python_integers_beyond_every_float_are_a_value_error(name):
     # 10**400 for a real option: geomjax's ValueError, not float()'s (or torch's) OverflowError.
-    fn, inputs = public(name), inputs_of(name, torch.float32)
+    fn, inputs = public(name), torch_inputs(name, torch.float32)
     for p in OP_BY_NAME[name].parameters:
         if not (p.static_type or "").startswith("float"):
             continue
@@ -319,14 +318,14 @@ def test_python_integers_beyond_every_float_are_a_value_error(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_mismatched_devices_raise_value_error(name):
-    fn, inputs = public(name), inputs_of(name, torch.float32)
+    fn, inputs = public(name), torch_inputs(name, torch.float32)
     second = next(k for k in differentiable(name, inputs) if k != "points")
     with pytest.raises(ValueError, match="device"):
         fn(**{**inputs, second: inputs[second].to("meta")})
 
 
 def test_ffd_box_requiring_grad_is_a_value_error():
-    inputs = inputs_of("free_form_deform_points", torch.float64)
+    inputs = torch_inputs("free_form_deform_points", torch.float64)
     box = {"origin": torch.tensor(inputs["origin"], dtype=torch.float64), "extent": torch.tensor(inputs["extent"], dtype=torch.float64)}
     expected = torch_bridge.free_form_deform_points(**{**inputs, **box})
     torch.testing.assert_close(expected, torch_bridge.free_form_deform_points(**inputs), rtol=0, atol=0)
@@ -345,7 +344,7 @@ def test_ffd_box_requiring_grad_is_a_value_error():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_opcheck_forward(name):
-    base = {**inputs_of(name, torch.float64), "implementation": "jax"}
+    base = {**torch_inputs(name, torch.float64), "implementation": "jax"}
     lifted = OP_BY_NAME[name].lifted
     for grad in (False, True):
         inputs = with_grad(base, differentiable(name, base) if grad else [])
@@ -357,7 +356,7 @@ def test_opcheck_forward(name):
 def test_opcheck_backward_op(name):
     """The autograd formula's op: the lifted VJP (its own autograd is its lifted VJP), on the
     default implementation as test_gradgradcheck_default."""
-    base = inputs_of(name, torch.float64)
+    base = torch_inputs(name, torch.float64)
     inputs = with_grad(base, differentiable(name, base))
     slots, statics, requires_grad = op_arguments(name, inputs)
     output = public(name)(**inputs)
@@ -379,7 +378,7 @@ def test_opcheck_backward_op(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_compile_fullgraph_equals_eager(name):
-    base = inputs_of(name, torch.float32)
+    base = torch_inputs(name, torch.float32)
     names = differentiable(name, base)
     fn = public(name)
 
@@ -405,14 +404,14 @@ def test_compile_fullgraph_equals_eager(name):
 
 
 def test_compile_has_no_graph_breaks():
-    inputs = with_grad(inputs_of("morph_points", torch.float32), ["control_displacements"])
+    inputs = with_grad(torch_inputs("morph_points", torch.float32), ["control_displacements"])
     explanation = torch._dynamo.explain(lambda: torch_bridge.morph_points(**inputs).sum())()
     assert explanation.graph_break_count == 0 and explanation.graph_count == 1
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_errors_keep_their_type_under_compile(name):
-    fn, inputs = public(name), inputs_of(name, torch.float32)
+    fn, inputs = public(name), torch_inputs(name, torch.float32)
     second = next(k for k in differentiable(name, inputs) if k != "points")
     torch._dynamo.reset()
 
@@ -427,7 +426,7 @@ def test_errors_keep_their_type_under_compile(name):
 
 
 def test_compiled_ffd_rejects_a_box_requiring_grad():
-    inputs = inputs_of("free_form_deform_points", torch.float32)
+    inputs = torch_inputs("free_form_deform_points", torch.float32)
     torch._dynamo.reset()
     compiled = torch.compile(
         lambda points, origin: torch_bridge.free_form_deform_points(**{**inputs, "points": points, "origin": origin}),
@@ -440,7 +439,7 @@ def test_compiled_ffd_rejects_a_box_requiring_grad():
 
 
 def test_compiled_unknown_implementation_is_a_key_error():
-    inputs = inputs_of("morph_points", torch.float32)
+    inputs = torch_inputs("morph_points", torch.float32)
     torch._dynamo.reset()
     compiled = torch.compile(lambda p: torch_bridge.morph_points(**{**inputs, "points": p}, implementation="nope"), fullgraph=True, backend="aot_eager")
     with pytest.raises(KeyError):
@@ -460,7 +459,7 @@ def _cuda_available():
 @pytest.mark.skipif(not _cuda_available(), reason="needs CUDA in both torch and JAX")
 @pytest.mark.parametrize(("name", "implementation"), IMPLEMENTATION_PARAMS)
 def test_cuda_values_gradients_and_devices(name, implementation):
-    base = {**inputs_of(name, torch.float32), "implementation": implementation}
+    base = {**torch_inputs(name, torch.float32), "implementation": implementation}
     cuda = {k: v.cuda() if isinstance(v, torch.Tensor) else v for k, v in base.items()}
     names = differentiable(name, base)
     inputs = with_grad(cuda, names)
