@@ -634,6 +634,8 @@ class LiftedFunction:
         result = [None] * len(leaves)
         if not (any(wanted) and any(present)):
             return result
+        if self._is_derivative and not all(present):
+            grad_outputs, present = self._with_zero_cotangents(slots, leaves, statics, grad_outputs)
         cotangents = [g for g in grad_outputs if g is not None]
         if (
             linearization is not None
@@ -651,6 +653,29 @@ class LiftedFunction:
             if wanted[i]:
                 result[i] = g
         return result
+
+    @property
+    def _is_derivative(self) -> bool:
+        """Whether this function is a VJP (so its own pullback is a second or higher derivative)."""
+        return "_vjp" in self.name
+
+    def _with_zero_cotangents(self, slots, leaves, statics, grad_outputs):
+        """``grad_outputs`` with an explicit zero for every absent floating-point cotangent.
+
+        Each pattern of present cotangents is another compiled program, and at second order each
+        costs seconds to compile: double backward (``gradgradcheck``, Hessian-vector products)
+        asks for one output's gradient at a time, one program per output (11 for morph_points).
+        With zeros filled in, every pattern shares the all-present program; the result is the same
+        (the pullback is linear in the cotangents), for a little more arithmetic.
+        """
+        specs = self._output_specs(slots, leaves, statics)
+        if specs is None:  # cannot happen after a successful forward; keep the given pattern
+            return grad_outputs, tuple(g is not None for g in grad_outputs)
+        device = self._device_of(leaves)
+        filled = [
+            torch.zeros(shape, dtype=dtype, device=device) if g is None and dtype.is_floating_point else g for g, (shape, dtype) in zip(grad_outputs, specs)
+        ]
+        return filled, tuple(g is not None for g in filled)
 
     def _derived(self, suffix: str, fn, extra_slots, extra_statics, num_outputs, **options) -> LiftedFunction:
         """A function derived from this one (its VJP, JVP or vmap), lifted the same way. The extra

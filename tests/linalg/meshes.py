@@ -6,6 +6,7 @@ edge matrix (not the Gram inverse the library uses), assembles dense matrices an
 independent check of the implicit adjoint.
 """
 
+import functools
 import itertools
 import math
 
@@ -100,14 +101,18 @@ def dense_stiffness(points, cells):
 
 def dense_sobolev(points, cells, displacement, length_scale, fixed=None):
     """``x + u`` with ``(m̄ I + l^2 K) u = m̄ d`` on the free rows and ``u = 0`` at fixed points."""
-    num_points = points.shape[0]
+    free = np.ones(points.shape[0], bool) if fixed is None else ~np.asarray(fixed)
+    return _dense_sobolev_on(points, cells, displacement, np.nonzero(free)[0], length_scale=length_scale)
+
+
+# One program per case (called eagerly, the solve's dozen steps would each compile on their own).
+@functools.partial(jax.jit, static_argnames="length_scale")
+def _dense_sobolev_on(points, cells, displacement, index, *, length_scale):
     stiffness, lumped = dense_stiffness(points, cells)
     positive = lumped > 0
     count = jnp.sum(positive).astype(points.dtype)
     one = jnp.ones((), points.dtype)
     mass = jnp.where(count > 0, jnp.sum(jnp.where(positive, lumped, 0)) / jnp.maximum(count, one), one)
-    free = np.ones(num_points, bool) if fixed is None else ~np.asarray(fixed)
-    index = np.nonzero(free)[0]
-    matrix = mass * jnp.eye(len(index), dtype=points.dtype) + length_scale**2 * stiffness[np.ix_(index, index)]
+    matrix = mass * jnp.eye(index.shape[0], dtype=points.dtype) + length_scale**2 * stiffness[index[:, None], index[None, :]]
     solution = jnp.linalg.solve(matrix, mass * displacement[index])
     return points + jnp.zeros_like(points).at[index].set(solution)

@@ -331,7 +331,8 @@ def test_queries_survive_bad_input(implementation, v_shape, f_shape, q_shape, v_
     queries = rng.normal(size=q_shape)
     if queries.size:
         queries.flat[-1] = fill
-    vertices, faces, queries = jnp.asarray(vertices).astype(v_dtype), jnp.asarray(faces).astype(f_dtype), jnp.asarray(queries).astype(q_dtype)
+    with np.errstate(all="ignore"):  # converted by NumPy (no program per shape): NaN and 1e300 overflow
+        vertices, faces, queries = (jnp.asarray(a.astype(t)) for a, t in ((vertices, v_dtype), (faces, f_dtype), (queries, q_dtype)))
     for call in (
         lambda: signed_distance_field(vertices, faces, queries, implementation=implementation),
         lambda: signed_distance_field(vertices, faces, queries, use_sign_winding_number=True, implementation=implementation),

@@ -5,10 +5,7 @@ from __future__ import annotations
 
 import ast
 import inspect
-import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import jax
@@ -275,50 +272,38 @@ def test_parameters_are_plain_tensors():
 
 
 def test_float64_round_trips_exactly_without_jax_x64():
-    """conftest enables x64 for the session, which hides float64 bugs: run without it."""
-    code = """
-import jax, numpy as np, torch
-import torch_bridge
-assert not jax.config.jax_enable_x64
-rng = np.random.default_rng(0)
-p, d = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
-# powers of two: w * d is exact, so XLA's fused multiply-add rounds exactly like numpy
-w = np.array([0.5, -2.0, 1.0, 0.25, -4.0, 8.0, -0.125])
-points = torch.tensor(p, requires_grad=True)
-displacement = torch.tensor(d, requires_grad=True)
-weights = torch.tensor(w, requires_grad=True)
-out = torch_bridge.displace_points(points, displacement, point_weights=weights)
-assert out.dtype == torch.float64
-assert np.array_equal(out.detach().numpy(), p + w[:, None] * d), "float64 values lost precision"
-out.backward(torch.ones_like(out))
-assert np.array_equal(displacement.grad.numpy(), np.repeat(w[:, None], 3, axis=1))
-assert np.allclose(weights.grad.numpy(), d.sum(axis=1), rtol=1e-15, atol=1e-15)
-assert np.array_equal(points.grad.numpy(), np.ones((7, 3)))
-# Ops that build constants inside return float32 or raise when JAX's x64 mode is off: compare
-# with geomjax under an explicit x64 context (same jitted computation, so bit-identical).
-from tests.op_cases import torch_inputs
-from tests.torch_bridge.test_ops import NAMES, as_jax
-import geomjax
-for name in NAMES:
-    with jax.enable_x64(True):  # the case table builds float64 arrays with JAX
-        inputs = {**torch_inputs(name, torch.float64), "implementation": "jax"}
-    out = getattr(torch_bridge, name)(**inputs)
-    with jax.enable_x64(True):
-        arrays = {k: v for k, v in as_jax(inputs).items() if isinstance(v, jax.Array)}
-        options = {k: v for k, v in inputs.items() if k not in arrays}
-        expected = jax.jit(lambda a: getattr(geomjax, name)(**a, **options))(arrays)
-    assert out.dtype == torch.float64, name
-    assert np.array_equal(out.numpy(), np.asarray(expected)), name
-assert not jax.config.jax_enable_x64, "the global x64 flag was flipped"
-print("OK")
-"""
-    # The session's environment (its compilation cache, XLA flags) without its x64 switch. At the
-    # default optimisation level: XLA's cheap level does not simplify the bridge's program and
-    # geomjax's to the same arithmetic (shrinkwrap then differs in the last bit).
-    env = {k: v for k, v in os.environ.items() if k not in ("JAX_ENABLE_X64", "JAX_DISABLE_MOST_OPTIMIZATIONS")}
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=REPO, timeout=300)
-    assert result.returncode == 0 and result.stdout.strip().endswith("OK"), result.stderr[-3000:]
+    """conftest enables x64 and strict promotion for the session, which hides float64 bugs: run
+    with JAX's defaults (x64 off, standard promotion), as a user's process has them."""
+    from tests.op_cases import assert_trees_close, torch_inputs
+    from tests.torch_bridge.test_ops import NAMES, as_jax, size
+
+    with jax.enable_x64(False), jax.numpy_dtype_promotion("standard"):
+        rng = np.random.default_rng(0)
+        p, d = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
+        # Powers of two: w * d is exact, so any rounding of the sum is numpy's.
+        w = np.array([0.5, -2.0, 1.0, 0.25, -4.0, 8.0, -0.125])
+        points, displacement, weights = (torch.tensor(a, requires_grad=True) for a in (p, d, w))
+        out = torch_bridge.displace_points(points, displacement, point_weights=weights)
+        assert out.dtype == torch.float64
+        assert np.array_equal(out.detach().numpy(), p + w[:, None] * d), "float64 values lost precision"
+        out.backward(torch.ones_like(out))
+        assert np.array_equal(displacement.grad.numpy(), np.repeat(w[:, None], 3, axis=1))
+        assert np.allclose(weights.grad.numpy(), d.sum(axis=1), rtol=1e-15, atol=1e-15)
+        assert np.array_equal(points.grad.numpy(), np.ones((7, 3)))
+        # Ops that build constants inside would return float32 (or raise) if the bridge did not
+        # run them in float64: compare with geomjax under an explicit x64 context, to float64
+        # rounding (float32 would be off by 1e-7).
+        for name in NAMES:
+            with jax.enable_x64(True):  # the case table builds float64 arrays with JAX
+                inputs = {**torch_inputs(name, torch.float64), "implementation": "jax"}
+            out = getattr(torch_bridge, name)(**inputs)
+            with jax.enable_x64(True):
+                arrays = {k: v for k, v in as_jax(inputs).items() if isinstance(v, jax.Array)}
+                options = {k: v for k, v in inputs.items() if k not in arrays}
+                expected = jax.jit(lambda a, name=name, options=options: getattr(geomjax, name)(**a, **options))(arrays)
+            assert out.dtype == torch.float64, name
+            assert_trees_close(out.numpy(), np.asarray(expected), jnp.float64, size(name), name)
+        assert not jax.config.jax_enable_x64, "the x64 flag was flipped"
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
