@@ -545,7 +545,10 @@ class LiftedFunction:
         # differently, and compiled and eager values should agree bitwise, not to rounding.
         # (The kernel runs below autograd, with grad mode off: ``requires_grad`` says what the
         # caller's leaves require.)
-        wrt = self._effective_wrt(leaves, args[-1])
+        # A VJP op (a compiled backward, double backward) computes just its gradients: linearising
+        # it would build the next derivative's residuals (compiled and run, then dropped) for a
+        # bitwise match that its eager counterpart, the saved pullback, does not share anyway.
+        wrt = (False,) * len(leaves) if self._is_derivative else self._effective_wrt(leaves, args[-1])
         outputs, _ = self._run_forward(slots, leaves, statics, wrt, keep_residuals=False)
         if self.num_outputs is None:
             return outputs
