@@ -26,7 +26,6 @@ Example:
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
@@ -142,6 +141,7 @@ def surface_distances(points, vertices, faces) -> np.ndarray:
     import jax
     import jax.numpy as jnp
 
+    from geomjax._geometry import closest_point_on_triangle
     from geomjax.query.bvh import build_bvh, closest_faces
 
     with jax.enable_x64(True):
@@ -149,25 +149,9 @@ def surface_distances(points, vertices, faces) -> np.ndarray:
         f = jnp.asarray(np.asarray(faces).reshape(-1, 3).astype(np.int32))
         p = jnp.asarray(np.asarray(points, np.float64).reshape(-1, 3))
         face = closest_faces(build_bvh(v, f), p)
-        return np.asarray(_distances_to_faces()(p, v, f, face))
-
-
-@functools.cache
-def _distances_to_faces():
-    """``(points, vertices, faces, face) -> (N,)`` distances to the given faces, one compiled
-    program per shape (eagerly, each of its dozens of steps would compile on its own)."""
-    import jax
-    import jax.numpy as jnp
-
-    from geomjax._geometry import closest_point_on_triangle
-
-    @jax.jit
-    def distances(p, v, f, face):
         corners = v[f[face]]
         closest, _ = closest_point_on_triangle(p, corners[:, 0], corners[:, 1], corners[:, 2])
-        return jnp.linalg.norm(closest - p, axis=1)
-
-    return distances
+        return np.linalg.norm(np.asarray(closest) - np.asarray(p), axis=1)
 
 
 def hausdorff_distance(vertices_a, faces_a, vertices_b, faces_b, *, num_probes: int = 100_000, seed: int = 0) -> float:
