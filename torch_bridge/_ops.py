@@ -30,6 +30,9 @@ _TORCH_FORMS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     "shrinkwrap_points": {"exclude": ("bvh",)},
     # grid_dims may also be an integer tensor: its values are read on the host (output shape).
     "mesh_to_voxel_fraction": {"annotations": {"grid_dims": "Sequence[int]"}},
+    # Index outputs are int64, as in the reference (geomjax's are int32 without JAX's x64 mode).
+    "signed_distance_field": {"index_outputs": (2,)},
+    "farthest_point_sampling": {"index_outputs": (0,)},
     "mesh_poisson_disk_sample": {
         # an integer tensor is read on the host, as for grid_dims
         "annotations": {"hash_grid_resolution": "int | Sequence[int]"},
@@ -40,6 +43,7 @@ _TORCH_FORMS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
             ((3,), arguments["mesh_vertices"].dtype),
             ((3,), torch.int64 if arguments["mesh_indices"].dtype == torch.int64 else torch.int32),
         ],
+        "index_outputs": (1,),
     },
 })  # fmt: skip
 

@@ -44,6 +44,7 @@ RAY_MESH_INTERSECT = BridgedOp(
     annotations={"warp_mesh_handle": "Tensor | None"},
     exclude=("return_warp_mesh",),
     returns="tuple[Tensor, Tensor, Tensor, Tensor, Tensor]",  # the BVH is added by the wrapper
+    index_outputs=(3,),  # face ids: int64, as in the reference
 )
 # The wrapper's defaults are geomjax's (one place for them).
 _DEFAULTS = {name: p.default for name, p in inspect.signature(geomjax.ray_mesh_intersect).parameters.items()}

@@ -249,6 +249,9 @@ class BridgedOp:
         dynamic_outputs: for a non-differentiable op with data-dependent output sizes,
             ``f(arguments) -> [(trailing_shape, torch_dtype), ...]`` given the bound arguments by
             name (tensors may be fake); see :class:`LiftedFunction`.
+        index_outputs: positions of the integer outputs that the reference returns as int64
+            whatever the index dtype of the inputs (face ids, triangles, sample indices); geomjax
+            returns int32 unless JAX runs in 64-bit mode.
     """
 
     def __init__(
@@ -262,8 +265,10 @@ class BridgedOp:
         returns: str | None = None,
         nondifferentiable: Sequence[str] = (),
         dynamic_outputs: Callable[[dict], list] | None = None,
+        index_outputs: Sequence[int] = (),
     ):
         self.function: Callable
+        self.index_outputs = frozenset(index_outputs)
         if isinstance(signature, str):
             declared = _parse_signature(signature)
             if function is None:
@@ -397,6 +402,10 @@ class BridgedOp:
     def __call__(self, *values):
         slots, statics = self.bind(values)
         outputs = self.lifted.apply(slots, statics)
+        if self.index_outputs:
+            # Outside the custom op (whose outputs keep geomjax's dtypes): eager calls and compiled
+            # graphs alike return int64, and fake tensors report it.
+            outputs = [o.to(torch.int64) if i in self.index_outputs else o for i, o in enumerate(outputs)]
         return outputs[0] if self.single_output else tuple(outputs)
 
 
@@ -452,6 +461,7 @@ def public_docstring(op: BridgedOp) -> str:
         "gradients, with ``torch.Tensor`` inputs and outputs (zero-copy through DLPack). It is the "
         f"custom op ``torch.ops.{NAMESPACE}.{op.name}`` with autograd (any order the JAX path supports), "
         "a fake kernel for ``torch.compile(fullgraph=True)``, and ``torch.library.opcheck`` coverage. "
-        '``implementation="torch"`` selects the portable JAX path.\n\n'
-        f"geomjax documentation:\n\n{geomjax_doc}"
+        '``implementation="torch"`` selects the portable JAX path.'
+        + (" Index outputs (face ids, triangles, sample indices) are int64 tensors, as in the reference." if op.index_outputs else "")
+        + f"\n\ngeomjax documentation:\n\n{geomjax_doc}"
     )

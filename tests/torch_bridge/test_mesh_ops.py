@@ -43,10 +43,12 @@ def _jax(t):
 
 
 def _assert_outputs_equal(ours, theirs, tol):
+    """Equal outputs; geomjax's integer outputs (index outputs) are int64 tensors here."""
     assert len(ours) == len(theirs)
     for a, b in zip(ours, theirs):
         b = np.asarray(b)
-        assert tuple(a.shape) == b.shape and a.numpy().dtype == b.dtype
+        expected_dtype = np.dtype(np.int64) if np.issubdtype(b.dtype, np.signedinteger) else b.dtype
+        assert tuple(a.shape) == b.shape and a.numpy().dtype == expected_dtype
         np.testing.assert_allclose(a.numpy(), b, rtol=tol, atol=tol)
 
 
@@ -247,7 +249,7 @@ def test_remeshing_equals_geomjax_and_keeps_dtypes():
     vertices, faces = torch_bridge.remeshing(REMESH["mesh_vertices"], FACES.int(), CLUSTERS)
     expected = geomjax.remeshing(_jax(REMESH["mesh_vertices"]), _jax(FACES.int()), CLUSTERS)
     _assert_outputs_equal((vertices, faces), expected, 0.0)
-    assert vertices.dtype == torch.float64 and faces.dtype == torch.int32 and vertices.shape[0] <= CLUSTERS
+    assert vertices.dtype == torch.float64 and faces.dtype == torch.int64 and vertices.shape[0] <= CLUSTERS
 
 
 def test_data_dependent_ops_compile_with_unbacked_sizes():
@@ -284,3 +286,28 @@ def test_remeshing_accepts_low_precision_density():
         wide = torch_bridge.remeshing(REMESH["mesh_vertices"], FACES, CLUSTERS, vertex_density=density.to(dtype).float())
         for a, b in zip(narrow, wide):
             torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("index_dtype", [torch.int32, torch.int64])
+def test_index_outputs_are_int64_whatever_the_index_dtype(index_dtype):
+    # The reference returns face ids, triangles and sample indices as int64. geomjax returns int32
+    # unless JAX runs in 64-bit mode, which float32 vertices with int32 indices do not ask for.
+    vertices, faces, points = VERTICES.float(), FACES.to(index_dtype), _query_points(torch.float32)
+    origins, directions = (r.float() for r in _rays())
+    outputs = {
+        "signed_distance_field": (torch_bridge.signed_distance_field(vertices, faces, points)[2],
+                                  geomjax.signed_distance_field(_jax(vertices), _jax(faces), _jax(points))[2]),
+        "ray_mesh_intersect": (torch_bridge.ray_mesh_intersect(vertices, faces, origins, directions)[3],
+                               geomjax.ray_mesh_intersect(_jax(vertices), _jax(faces), _jax(origins), _jax(directions))[3]),
+        "remeshing": (torch_bridge.remeshing(REMESH["mesh_vertices"].float(), faces, CLUSTERS)[1],
+                      geomjax.remeshing(_jax(REMESH["mesh_vertices"].float()), _jax(faces), CLUSTERS)[1]),
+        "farthest_point_sampling": (torch_bridge.farthest_point_sampling(points, 5),
+                                    geomjax.farthest_point_sampling(_jax(points), 5)),
+    }  # fmt: skip
+    for name, (ours, theirs) in outputs.items():
+        assert ours.dtype == torch.int64, name
+        np.testing.assert_array_equal(ours.numpy(), np.asarray(theirs), err_msg=name)
+    # Compiled graphs (fake tensors) report the same dtype.
+    torch._dynamo.reset()
+    compiled = torch.compile(lambda p: torch_bridge.signed_distance_field(vertices, faces, p)[2], fullgraph=True, backend="aot_eager")
+    assert compiled(points).dtype == torch.int64
