@@ -93,12 +93,12 @@ def _fast_cpu_converters() -> tuple[Callable, Callable] | None:
 _import_cpu, _export_cpu = _fast_cpu_converters() or (jax.dlpack.from_dlpack, lambda a: torch.utils.dlpack.from_dlpack(a.__dlpack__()))
 
 
-# A small tensor seen for the first time goes to the jitted function as a NumPy view: jit's C++
-# dispatch takes a NumPy argument ~20 µs faster than a freshly imported DLPack buffer (whose
-# sharding is built in Python), and copying a few kilobytes costs nothing next to that
-# (measured). A kept DLPack view pays off only for tensors that come back.
+# A small tensor goes to a jitted function as a NumPy view: jit's C++ dispatch takes a NumPy
+# argument ~20 µs faster than a DLPack buffer (whose sharding is built in Python), and copying a
+# few kilobytes costs nothing next to that (measured). It must be a NumPy view on every call, not
+# only the first: jit keys its cache on whether an argument is committed to a device, so a NumPy
+# first call followed by a kept (committed) view compiled every program twice.
 SMALL_CPU_BYTES = 16 * 2**10
-_FIRST_SIGHTINGS = 1024  # bound on the remembered first sightings (cleared when full)
 
 
 # What a kept view was made from: the tensor's memory, shape, strides and dtype.
@@ -112,31 +112,20 @@ class _CpuViews:
     the ~15 µs of a DLPack import and release. A view shares the tensor's memory, so in-place
     updates are seen; it is reused only while the tensor keeps the same memory, shape, strides and
     dtype. Copies (unaligned memory) are never kept, and CUDA tensors are never kept: each CUDA
-    import must order JAX after PyTorch's current stream. With ``numpy_first`` (arguments of a
-    jitted function) a small tensor gets a kept view on its second call only and its first call
-    returns a NumPy view (see ``SMALL_CPU_BYTES``), so tensors made anew for every call never pay
-    for a view and its weak reference.
+    import must order JAX after PyTorch's current stream.
     """
 
     def __init__(self) -> None:
         self._views: dict[int, tuple[weakref.ref[torch.Tensor], _Layout, jax.Array]] = {}
-        self._seen: dict[int, _Layout] = {}  # id -> signature of small tensors passed once (a hint, not a reference)
 
-    def __call__(self, t: torch.Tensor, *, numpy_first: bool = False):
+    def __call__(self, t: torch.Tensor) -> jax.Array:
         key = id(t)
         entry = self._views.get(key)
-        if entry is not None:
-            ref, signature, array = entry
-            if ref() is t and signature == (t.data_ptr(), t.shape, t.stride(), t.dtype):
-                return array
         signature = (t.data_ptr(), t.shape, t.stride(), t.dtype)
-        if numpy_first and t.numel() * t.element_size() <= SMALL_CPU_BYTES and self._seen.get(key) != signature:
-            small = _numpy_view(t)
-            if small is not None:
-                if len(self._seen) >= _FIRST_SIGHTINGS:
-                    self._seen.clear()
-                self._seen[key] = signature
-                return small
+        if entry is not None:
+            ref, kept_signature, array = entry
+            if ref() is t and kept_signature == signature:
+                return array
         # Import a detached alias: a capsule holding ``t`` itself would keep ``t`` alive through
         # the kept view, so the weak reference below would never fire.
         array = _import_cpu(t.detach())
@@ -164,12 +153,16 @@ def to_jax(t: torch.Tensor, *, keep: bool = True, jit_argument: bool = False) ->
     the stream-aware DLPack protocol, so JAX waits for PyTorch's current stream. ``keep=False``
     is for transient tensors (saved outputs and residuals, which autograd re-wraps on every
     unpack, and cotangents): their views are not kept for reuse. ``jit_argument=True`` (the
-    array only goes into a jitted function) lets a small CPU tensor's first call pass a NumPy
-    view instead (see ``_CpuViews``)."""
+    array only goes into a jitted function) gives a small CPU tensor as a NumPy view, on every
+    call (see ``SMALL_CPU_BYTES``)."""
+    if jit_argument and t.is_cpu and t.numel() * t.element_size() <= SMALL_CPU_BYTES:
+        small = _numpy_view(t.contiguous())  # contiguous or not, like every other call
+        if small is not None:
+            return small
     if not t.is_contiguous():
         t = t.contiguous()
     elif keep and t.is_cpu:
-        return _cpu_views(t, numpy_first=jit_argument)
+        return _cpu_views(t)
     if t.requires_grad:
         t = t.detach()
     return _import_cpu(t) if t.is_cpu else jax.dlpack.from_dlpack(t)

@@ -232,21 +232,33 @@ def test_cpu_views_are_reused_and_follow_the_tensor():
     assert len(views._views) == before
 
 
-def test_small_tensors_get_a_kept_view_on_their_second_call_only():
-    """A tensor made anew for every call goes through NumPy (no view, no weak reference); one
-    that comes back gets a kept view; large tensors are kept from the first call."""
-    views = _dlpack._cpu_views
-    p, d = _points(torch.float32, (16, 3)), _points(torch.float32, (16, 3), seed=1)
-    once = torch_bridge.displace_points(p, d)
-    assert id(p) not in views._views and id(d) not in views._views
-    torch.testing.assert_close(once, p + d, rtol=0, atol=0)
-    with torch.no_grad():
-        p.add_(1.0)  # in place between the NumPy call and the kept view: both see the memory
+# Programs lowered so far in this process (each jit cache miss lowers, then compiles or loads).
+_LOWERINGS = [0]
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **_: _LOWERINGS.__setitem__(0, _LOWERINGS[0] + (event == "/jax/core/compile/jaxpr_to_mlir_module_duration"))
+)
+
+
+@pytest.mark.parametrize("rows", [16, _dlpack.SMALL_CPU_BYTES // 12 + 1], ids=["small", "large"])
+def test_repeated_calls_compile_once(rows):
+    """The same tensors again, the same tensors updated in place, and new tensors of the same
+    shapes all reach the first call's program: jit keys its cache on whether an argument is
+    committed, and a NumPy first call followed by a kept view compiled every program twice.
+    Small tensors go as NumPy views on every call, large ones as kept DLPack views."""
+    p, d = _points(torch.float32, (rows, 3)), _points(torch.float32, (rows, 3), seed=1)
     torch.testing.assert_close(torch_bridge.displace_points(p, d), p + d, rtol=0, atol=0)
-    assert id(p) in views._views and id(d) in views._views
-    large = _points(torch.float32, (_dlpack.SMALL_CPU_BYTES // 12 + 1, 3))
-    _dlpack.to_jax(large, jit_argument=True)
-    assert id(large) in views._views
+    first = _LOWERINGS[0]
+    with torch.no_grad():
+        p.add_(1.0)  # in place: seen through the NumPy view and the kept view alike
+    torch.testing.assert_close(torch_bridge.displace_points(p, d), p + d, rtol=0, atol=0)
+    q = p.clone()
+    torch.testing.assert_close(torch_bridge.displace_points(q, d), q + d, rtol=0, atol=0)
+    assert _LOWERINGS[0] == first, "a repeated call compiled its program again"
+    kept = id(p) in _dlpack._cpu_views._views
+    assert kept == (rows * 3 * 4 > _dlpack.SMALL_CPU_BYTES)
+
+
+def test_low_precision_tensors_without_a_numpy_dtype_convert():
     half = torch.full((4, 3), 1.5, dtype=torch.bfloat16)  # no NumPy dtype: DLPack from the first call
     array = _dlpack.to_jax(half, jit_argument=True)
     assert isinstance(array, jax.Array) and array.dtype == jnp.bfloat16
