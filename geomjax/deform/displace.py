@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 from jaxtyping import Array, Bool, Float
 
 from .._dispatch import platform_of, select_implementation
@@ -56,4 +57,8 @@ def displace_points(
     displacement = check_same_shape("points", points, "displacement", displacement)
     point_weights = check_point_weights(point_weights, points)
     select_implementation("displace_points", implementation, platform=platform_of(points))
-    return apply_point_weights(points, displacement, point_weights)
+    return _displaced(points, displacement, point_weights)
+
+
+# One compiled program per shape for eager calls (rather than one per operation of the weight rule).
+_displaced = jax.jit(apply_point_weights)

@@ -144,6 +144,13 @@ def free_form_deform_points(
         ),
     )
 
+    return _free_form_deform(points, lattice, origin, extent, point_weights, basis=basis, backend=backend, batched=batched)
+
+
+@functools.partial(jax.jit, static_argnames=("basis", "backend", "batched"))
+def _free_form_deform(points, lattice, origin, extent, point_weights, *, basis: str, backend: Implementation, batched: bool) -> jax.Array:
+    """The validated op as one compiled program: an eager call compiles it once per shape, not a
+    one-operation program for each step (batch axes, box, weights)."""
     points_b = add_batch_axis(points, batched)
     lattice_b = add_batch_axis(lattice, batched)
     weights_b = add_batch_axis(point_weights, batched)

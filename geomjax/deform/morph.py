@@ -119,6 +119,13 @@ def morph_points(
     backend = select_implementation("morph_points", implementation, platform=platform_of(points))
     radii = _radius_array(radius, control_points, batched)
 
+    return _morph_points(points, control_points, control_displacements, radii, point_weights, backend=backend, batched=batched)
+
+
+@functools.partial(jax.jit, static_argnames=("backend", "batched"))
+def _morph_points(points, control_points, control_displacements, radii, point_weights, *, backend: Implementation, batched: bool) -> jax.Array:
+    """The validated op as one compiled program: an eager call compiles it once per shape, not a
+    one-operation program for each step (batch axes, weights)."""
     args = (
         add_batch_axis(points, batched),
         add_batch_axis(control_points, batched),

@@ -154,16 +154,16 @@ def shrinkwrap_points(
     )
     if points.shape[-2] == 0:
         return points
+    gate = None if max_distance is None else jnp.asarray(max_distance, dtype)
+    return _shrinkwrap(points, target_points, faces, valid, offset, point_weights, gate, bvh, backend=backend, batched=batched)
+
+
+@functools.partial(jax.jit, static_argnames=("backend", "batched"))
+def _shrinkwrap(points, target_points, faces, valid, offset, point_weights, max_distance, bvh, *, backend, batched):
+    """Search (no gradient) and replay, normalised to ``(B, N, 3)`` points inside the compiled
+    program (``max_distance``: 0-d or None)."""
     x = add_batch_axis(points, batched)
     weights = add_batch_axis(point_weights, batched)
-    gate = None if max_distance is None else jnp.asarray(max_distance, dtype)
-    out = _shrinkwrap(x, target_points, faces, valid, offset, weights, gate, bvh, backend=backend)
-    return remove_batch_axis(out, batched)
-
-
-@functools.partial(jax.jit, static_argnames=("backend",))
-def _shrinkwrap(x, target_points, faces, valid, offset, weights, max_distance, bvh, *, backend):
-    """Search (no gradient) and replay on normalised ``(B, N, 3)`` points (``max_distance``: 0-d or None)."""
     queries = x.reshape(-1, 3)
     if backend.is_warp:
         nearest = _nearest_faces_warp(queries, target_points, faces, valid, max_distance, bvh)
@@ -172,7 +172,7 @@ def _shrinkwrap(x, target_points, faces, valid, offset, weights, max_distance, b
     nearest = jax.lax.stop_gradient(nearest).reshape(x.shape[:-1])
     fallback = jnp.argmax(valid).astype(nearest.dtype)
     field = _projection_field(x, target_points, faces, nearest, fallback, offset, max_distance)
-    return apply_point_weights(x, field, weights)
+    return remove_batch_axis(apply_point_weights(x, field, weights), batched)
 
 
 def _offset_array(offset, points: jax.Array) -> jax.Array:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,14 +27,7 @@ from geomjax import (  # noqa: E402
     total_measure_energy,
 )
 
-from .test_energies import (  # noqa: E402
-    CUBE_TETS,
-    OCTAHEDRON_FACES,
-    OCTAHEDRON_HINGES,
-    deformed_cube,
-    deformed_octahedron,
-    rng_array,
-)
+from .test_energies import CUBE_TETS, OCTAHEDRON_FACES, OCTAHEDRON_HINGES, deformed_cube, deformed_octahedron, rng_array  # noqa: E402
 
 PARAMETERS = {
     simplex_strain_energy: {"lame_lambda": 0.4, "shear_modulus": 1.1},
@@ -49,16 +44,26 @@ def tolerance(dtype):
     return {"rtol": 2e-4, "atol": 2e-5} if dtype == jnp.float32 else {"rtol": 1e-10, "atol": 1e-12}
 
 
-def evaluate(energy, implementation, points, reference, topology, weights=None):
-    """Per-term values and the gradients of a weighted NaN-ignoring sum, for one backend."""
+@functools.cache
+def _terms_and_gradients(energy, implementation):
+    """``(points, reference, topology, weights) -> (terms, gradients)`` as one jitted program
+    (run eagerly, the value-and-gradient compiles a one-primitive program per operation)."""
     kwargs = PARAMETERS[energy]
 
-    def loss(p, r):
-        terms = energy(p, r, topology, reduction="none", implementation=implementation, **kwargs)
-        return jnp.nansum(terms if weights is None else terms * weights), terms
+    def run(points, reference, topology, weights):
+        def loss(p, r):
+            terms = energy(p, r, topology, reduction="none", implementation=implementation, **kwargs)
+            return jnp.nansum(terms if weights is None else terms * weights), terms
 
-    (_, terms), grads = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(points, reference)
-    return terms, grads
+        (_, terms), grads = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(points, reference)
+        return terms, grads
+
+    return jax.jit(run)
+
+
+def evaluate(energy, implementation, points, reference, topology, weights=None):
+    """Per-term values and the gradients of a weighted NaN-ignoring sum, for one backend."""
+    return _terms_and_gradients(energy, implementation)(points, reference, topology, weights)
 
 
 def assert_parity(energy, points, reference, topology, weights=None):
