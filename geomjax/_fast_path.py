@@ -35,6 +35,8 @@ import numpy as np
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
+from ._validate import as_jax_array
+
 __all__ = ["fast_with_reference"]
 
 
@@ -83,7 +85,7 @@ def fast_with_reference(
             return lambda *arrays: fn(*_filled(absent, present, arrays))
 
         fast, reference, args = with_absent(fast), with_absent(reference), [a for a in args if a is not None]
-    args = tuple(jnp.asarray(a) for a in args)
+    args = tuple(as_jax_array(a) for a in args)
     mask = tuple(_differentiable(a) for a in args)
 
     def reference_diff(primals, *diff_args):

@@ -27,6 +27,17 @@ def is_array(x) -> bool:
     return isinstance(x, (jax.Array, np.ndarray)) or (hasattr(x, "shape") and hasattr(x, "dtype") and not isinstance(x, (numbers.Number, np.generic)))
 
 
+def as_jax_array(x) -> jax.Array:
+    """``x`` as a JAX array, unchanged if it is one. Host arrays go through ``jax.device_put``:
+    ``jnp.asarray`` of a NumPy array compiles a copy program for each new shape (jax 0.10), a
+    cost every first call with a new input shape paid."""
+    if isinstance(x, jax.Array):
+        return x
+    if hasattr(x, "__jax_array__"):
+        return jnp.asarray(x)
+    return jax.device_put(np.asarray(x))
+
+
 def _as_array_of(name: str, x, dtypes: tuple, kind: str) -> jax.Array:
     article = "an" if kind[0] in "aeiou" else "a"
     if not is_array(x):
@@ -34,7 +45,7 @@ def _as_array_of(name: str, x, dtypes: tuple, kind: str) -> jax.Array:
     dtype = jnp.dtype(x.dtype)
     if dtype not in dtypes:
         raise TypeError(f"{name} must have dtype {kind}, got {dtype}")
-    return jnp.asarray(x)
+    return as_jax_array(x)
 
 
 def as_float_array(name: str, x) -> jax.Array:

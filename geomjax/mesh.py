@@ -26,7 +26,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._errors import raises_documented_errors, runtime_check
 from ._registry import REGISTRY, MeshArguments, OpDeclaration
-from ._validate import as_float_array, check_real_sequence, check_same_device, check_same_dtype, check_same_shape, is_array
+from ._validate import as_float_array, as_jax_array, check_real_sequence, check_same_device, check_same_dtype, check_same_shape, is_array
 
 __all__ = ["Mesh", "Topology"]
 
@@ -513,7 +513,7 @@ def _checked_box_extent(extent: jax.Array) -> jax.Array:
 def _device_indices(indices: np.ndarray) -> jax.Array:
     # A concrete constant even when first requested inside a trace, so caching it leaks no tracer.
     with jax.ensure_compile_time_eval():
-        return jnp.asarray(indices.astype(np.int32))
+        return as_jax_array(indices.astype(np.int32))
 
 
 def _validate_cells(cells, num_points: int, num_dims: int) -> np.ndarray:

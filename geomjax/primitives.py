@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._validate import FLOAT_DTYPES, as_float_array, check_bool, check_integer, check_real_scalar, check_real_sequence, is_array
+from ._validate import FLOAT_DTYPES, as_float_array, as_jax_array, check_bool, check_integer, check_real_scalar, check_real_sequence, is_array
 from .mesh import Mesh
 
 __all__ = ["icosphere", "rectangle", "tetrahedralized_box", "polyline"]
@@ -242,7 +242,7 @@ def _float_dtype(dtype):
 
 def _points(coordinates: np.ndarray, dtype) -> jax.Array:
     # Rounded once from float64 coordinates, so float32 meshes are as accurate as float32 allows.
-    return jnp.asarray(coordinates.astype(np.dtype(dtype.name)))
+    return as_jax_array(coordinates.astype(np.dtype(dtype.name)))
 
 
 def _grid(counts: tuple[int, ...], origin, extent, dtype, corner_simplices: np.ndarray) -> Mesh:

@@ -4,6 +4,7 @@ Each case either runs (and returns finite-or-NaN arrays of the promised shape) o
 documented exception types. A segfault or an out-of-bounds kernel read would kill the test process.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -24,8 +25,9 @@ def _array(shape, dtype, fill):
     if data.size:
         data.flat[0] = fill
     with np.errstate(all="ignore"):  # NaN, inf and 1e30 cast to integers and float16
-        # Converted by NumPy: no compiled program per shape and dtype.
-        return jnp.asarray(data.astype(dtype))
+        # Converted by NumPy and transferred by device_put: no compiled program per shape and
+        # dtype (jnp.asarray of a NumPy array compiles one).
+        return jax.device_put(data.astype(dtype))
 
 
 def _call(fn, *args, **kwargs):

@@ -36,6 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._validate import as_jax_array
+
 __all__ = [
     "simplex_stiffness",
     "off_diagonal_pairs",
@@ -171,7 +173,7 @@ def row_pattern(cells: np.ndarray, num_points: int) -> RowPattern | None:
         # Kept on the device, so repeated eager calls do not copy the pattern again (concrete
         # arrays even when first built while tracing, so the cache never holds a tracer).
         with jax.ensure_compile_time_eval():
-            pattern = RowPattern(*(jnp.asarray(a) for a in host_pattern))
+            pattern = RowPattern(*(as_jax_array(a) for a in host_pattern))
     with _PATTERN_LOCK:
         _PATTERN_CACHE[key] = pattern
         while len(_PATTERN_CACHE) > _PATTERN_CACHE_SIZE:

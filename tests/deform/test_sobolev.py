@@ -317,7 +317,7 @@ def test_bad_input_never_crashes(implementation, num_points, dim, cells, dtype, 
     never reach a kernel."""
     width = len(cells[0]) if cells else 2
     cells = jnp.asarray([c[:width] + [0] * (width - len(c)) for c in cells] or np.zeros((0, width)), jnp.int32)
-    points = jnp.asarray(np.random.default_rng(num_points).normal(size=(num_points, dim))).astype(dtype)
+    points = jax.device_put(np.random.default_rng(num_points).normal(size=(num_points, dim)).astype(dtype))
     if num_points:
         points = points.at[0, 0].set(fill) if dtype != jnp.int32 else points
     try:

@@ -342,7 +342,7 @@ def test_queries_survive_bad_input(implementation, v_shape, f_shape, q_shape, v_
     if queries.size:
         queries.flat[-1] = fill
     with np.errstate(all="ignore"):  # converted by NumPy (no program per shape): NaN and 1e300 overflow
-        vertices, faces, queries = (jnp.asarray(a.astype(t)) for a, t in ((vertices, v_dtype), (faces, f_dtype), (queries, q_dtype)))
+        vertices, faces, queries = (jax.device_put(a.astype(t)) for a, t in ((vertices, v_dtype), (faces, f_dtype), (queries, q_dtype)))
     for call in (
         lambda: signed_distance_field(vertices, faces, queries, implementation=implementation),
         lambda: signed_distance_field(vertices, faces, queries, use_sign_winding_number=True, implementation=implementation),

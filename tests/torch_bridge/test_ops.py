@@ -56,7 +56,8 @@ def differentiable(name, inputs):
 
 
 def as_jax(inputs):
-    return {k: jnp.asarray(v.detach().numpy()) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
+    # device_put compiles nothing (jnp.asarray of a NumPy array compiles a program per shape).
+    return {k: jax.device_put(v.detach().numpy()) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
 
 
 def geomjax_reference(name, inputs):
