@@ -249,7 +249,7 @@ class ThinPlateSplineFit(eqx.Module):
         """The fitted field ``u(points)`` (not added to the points), shape and dtype of ``points``."""
         points = self._check_points(points)
         backend = self._implementation(points, implementation)
-        return remove_batch_axis(self._field(add_batch_axis(points, self.batched), backend), self.batched)
+        return _displacement(points, self._leaves, batched=self.batched, backend=backend, budget=_block_budget(points))
 
     def __call__(
         self,
@@ -269,8 +269,7 @@ class ThinPlateSplineFit(eqx.Module):
         points = self._check_points(points)
         point_weights = check_point_weights(point_weights, points)
         backend = self._implementation(points, implementation)
-        field = remove_batch_axis(self._field(add_batch_axis(points, self.batched), backend), self.batched)
-        return apply_point_weights(points, field, point_weights)
+        return _deformed_points(points, point_weights, self._leaves, batched=self.batched, backend=backend, budget=_block_budget(points))
 
     def _check_points(self, points) -> jax.Array:
         points, batched = check_coordinates("points", points)
@@ -281,16 +280,39 @@ class ThinPlateSplineFit(eqx.Module):
     def _implementation(self, points, implementation: str | Implementation | None) -> Implementation:
         return select_implementation(_NAME, implementation, platform=platform_of(points))
 
-    def _field(self, points: jax.Array, implementation: Implementation) -> jax.Array:
-        """``u`` on ``(B, N, D)`` points."""
-        leaves = (add_batch_axis(leaf, self.batched) for leaf in (self.centre, self.scale, self.normalised_controls, self.weights, self.constant, self.linear))
-        if points.shape[0] == 0 or points.shape[1] == 0:
-            return jnp.zeros(points.shape, points.dtype)
-        budget = _BLOCK_BYTES.get(platform_of(points), _DEFAULT_BLOCK_BYTES)
-        return map_local_shards(functools.partial(_evaluate, implementation, budget), (points, *leaves), (2, 1, 1, 1, 1, 1, 1), out_axes=2)
+    @property
+    def _leaves(self) -> tuple[jax.Array, ...]:
+        return (self.centre, self.scale, self.normalised_controls, self.weights, self.constant, self.linear)
 
 
 # -- evaluation --------------------------------------------------------------------------------
+
+
+def _block_budget(points: jax.Array) -> int:
+    """Bytes per block of point/control pairs on the platform of ``points`` (read outside any
+    trace: inside one, the platform of a tracer is unknown)."""
+    return _BLOCK_BYTES.get(platform_of(points), _DEFAULT_BLOCK_BYTES)
+
+
+def _field(points: jax.Array, leaves: tuple[jax.Array, ...], implementation: Implementation, budget: int) -> jax.Array:
+    """``u`` on ``(B, N, D)`` points from batched fit leaves."""
+    if points.shape[0] == 0 or points.shape[1] == 0:
+        return jnp.zeros(points.shape, points.dtype)
+    return map_local_shards(functools.partial(_evaluate, implementation, budget), (points, *leaves), (2, 1, 1, 1, 1, 1, 1), out_axes=2)
+
+
+# An eager evaluation is one compiled program per shape (batch axes, field and weights together)
+# rather than a program for each of those steps.
+@functools.partial(jax.jit, static_argnames=("batched", "backend", "budget"))
+def _displacement(points, leaves, *, batched: bool, backend: Implementation, budget: int) -> jax.Array:
+    batched_leaves = tuple(add_batch_axis(leaf, batched) for leaf in leaves)
+    return remove_batch_axis(_field(add_batch_axis(points, batched), batched_leaves, backend, budget), batched)
+
+
+@functools.partial(jax.jit, static_argnames=("batched", "backend", "budget"))
+def _deformed_points(points, point_weights, leaves, *, batched: bool, backend: Implementation, budget: int) -> jax.Array:
+    field = _displacement(points, leaves, batched=batched, backend=backend, budget=budget)
+    return apply_point_weights(points, field, point_weights)
 
 
 @eqx.filter_jit
