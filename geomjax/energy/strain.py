@@ -82,7 +82,8 @@ def simplex_strain_energy(
         TypeError: non-float coordinates, mismatched dtypes, non-integer ``cells``, a ``bool``
             or non-real modulus.
         ValueError: bad shapes, ``D < m``, a non-finite modulus, ``shear_modulus < 0``, a
-            negative ``lame_lambda + 2 * shear_modulus / m``, an unknown ``reduction``,
+            negative ``lame_lambda + 2 * shear_modulus / m`` or a ``lame_lambda / 2 +
+            shear_modulus / m`` beyond the dtype's range ("must be finite"), an unknown ``reduction``,
             ``implementation="warp"`` with ``D > 3``.
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
@@ -107,6 +108,12 @@ def simplex_strain_energy(
     lame_lambda = check_real_scalar("lame_lambda", lame_lambda, points.dtype)
     shear_modulus = check_real_scalar("shear_modulus", shear_modulus, points.dtype, nonnegative=True)
     bulk_term = lame_lambda / 2 + shear_modulus / m
+    if not abs(bulk_term) <= float(jnp.finfo(points.dtype).max):  # inf, or beyond the dtype
+        # Each modulus is representable, but the kernels' bulk coefficient would overflow to inf.
+        raise ValueError(
+            f"lame_lambda / 2 + shear_modulus / simplex_dimension must be finite in {jnp.dtype(points.dtype)}, got "
+            f"{lame_lambda} / 2 + {shear_modulus} / {m} = {bulk_term}"
+        )
     if bulk_term < 0:
         raise ValueError(
             "lame_lambda + 2 * shear_modulus / simplex_dimension must be nonnegative, got "

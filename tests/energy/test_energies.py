@@ -515,6 +515,16 @@ def test_errors():
         jax_energy(simplex_strain_energy, current, rest, cells, lame_lambda=math.inf)
     with pytest.raises(TypeError, match="lame_lambda"):
         jax_energy(simplex_strain_energy, current, rest, cells, lame_lambda=True)
+    # Each modulus representable, their bulk combination not: lambda / 2 + mu / 1 on segments is
+    # 1.5e38 + 3e38 in float32 (and 8.5e307 + 1.7e308 in float64), beyond the largest float.
+    for dtype, huge in ((jnp.float32, 3e38), (jnp.float64, 1.7e308)):
+        for implementation in (None, "jax", "warp"):
+            with pytest.raises(ValueError, match=r"lame_lambda / 2 \+ shear_modulus / simplex_dimension must be finite"):
+                simplex_strain_energy(
+                    current.astype(dtype), rest.astype(dtype), cells[:, :2], lame_lambda=huge, shear_modulus=huge, implementation=implementation
+                )
+    edge = simplex_strain_energy(current, rest, cells[:, :2], lame_lambda=1.7e308, shear_modulus=0.0, reduction="none")
+    assert np.isfinite(np.asarray(edge)).all()  # the largest representable combination is accepted
     with pytest.raises(TypeError, match="shear_modulus"):
         jax_energy(simplex_strain_energy, current, rest, cells, shear_modulus="1")
     for energy in (simplex_measure_energy, total_measure_energy):

@@ -170,6 +170,14 @@ def test_gradgradcheck_default(name):
     assert torch.autograd.gradgradcheck(function_of(name, inputs, names), tensors, fast_mode=True)
 
 
+def test_unrepresentable_strain_bulk_term_is_a_value_error():
+    # Segments (m = 1): lame_lambda / 2 + shear_modulus = 4.5e38 overflows float32, as in geomjax.
+    points = torch.linspace(0.0, 1.0, 12, dtype=torch.float32).reshape(4, 3)
+    cells = torch.tensor([[0, 1], [1, 2], [2, 3]])
+    with pytest.raises(ValueError, match=r"lame_lambda / 2 \+ shear_modulus / simplex_dimension must be finite in float32"):
+        torch_bridge.simplex_strain_energy(points + 0.01, points, cells, lame_lambda=3e38, shear_modulus=3e38)
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_implementation_torch_means_jax(name):
     inputs = torch_inputs(name, torch.float64)
