@@ -19,7 +19,7 @@ from .._errors import raises_documented_errors
 from .._hash_grid import cell_order, check_cell_range, grid_resolution, table_dims
 from .._hashing import lowbias32
 from .._projection import SurfaceProjector
-from .._validate import as_jax_array, check_choice, check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
+from .._validate import check_choice, check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
 
 __all__ = ["mesh_poisson_disk_sample"]
 
@@ -334,7 +334,7 @@ def _weighted_sample_elimination(surface: _Surface, search, target: int, seed: i
     dims = _grid_setup(surface, cell, resolution)
     row_offsets, columns = search.neighbour_lists(points, r_max32, limit, cell, dims, _neighbour_capacity(pool_size, target))
     rows = np.repeat(np.arange(pool_size, dtype=np.int32), np.diff(row_offsets))
-    ratios = np.asarray(_pair_weight_ratios(as_jax_array(points), as_jax_array(rows), as_jax_array(columns), np.float32(r_min), np.float32(r_max32)))
+    ratios = np.asarray(_pair_weight_ratios(points, rows, columns, np.float32(r_min), np.float32(r_max32)))
     positive_degree = np.bincount(rows[ratios > 0], minlength=pool_size)
     scale = min(2**WEIGHT_BITS, (2**31 - 1) // max(1, int(positive_degree.max(initial=0))))
     pair_weight = np.rint(ratios.astype(np.float64) * scale).astype(np.int32)
@@ -381,7 +381,7 @@ def _relax(samples: np.ndarray, surface: _Surface, search, r_max: float, limit: 
         rows = np.repeat(np.arange(samples.shape[0], dtype=np.int32), np.diff(row_offsets))
         # One pair order for every backend, so the summed pushes are bitwise equal.
         order = np.lexsort((columns, rows))
-        moved = _repelled(as_jax_array(samples), as_jax_array(rows[order]), as_jax_array(columns[order]), np.float32(r_max))
+        moved = _repelled(samples, rows[order], columns[order], np.float32(r_max))
         samples = project(np.asarray(moved))[0]
     return samples
 
