@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -31,8 +32,10 @@ from ..linalg import (
     CellStiffness,
     HelmholtzOperator,
     JacobiPCG,
+    MultilevelPreconditioner,
     RowPattern,
     RowStiffness,
+    aggregation_hierarchy,
     jacobi_pcg,
     off_diagonal_entries,
     off_diagonal_pairs,
@@ -43,6 +46,7 @@ from ..linalg import (
     uniform_lumped_mass,
 )
 from ..linalg._helmholtz import StiffnessOperator
+from ..linalg._multilevel import Coarsening
 
 __all__ = ["sobolev_deform_points"]
 
@@ -82,8 +86,13 @@ def sobolev_deform_points(
     fixed. ``length_scale = 0`` returns ``x + d`` (masked) before any assembly or value
     validation, so degenerate cells are then accepted.
 
-    The system is solved by Jacobi-preconditioned CG on the whole ``(N, D)`` block (see
-    :func:`geomjax.linalg.jacobi_pcg`), starting from the masked ``d``, until the true residual
+    The system is solved by preconditioned CG on the whole ``(N, D)`` block (see
+    :func:`geomjax.linalg.jacobi_pcg`). With concrete ``cells`` the preconditioner is a multilevel
+    V-cycle (:class:`geomjax.linalg.MultilevelPreconditioner`: aggregation built once per
+    topology on the host and cached, coarse operators from the current geometry, the coarsest
+    solved directly), which needs a fraction of Jacobi's iterations on fine or badly shaped meshes
+    and is exact on meshes of at most 150 vertices; with traced ``cells`` (an argument of ``jit``)
+    it is Jacobi. The solve starts from the masked ``d`` and runs until the true residual
     satisfies ``||b - A u|| <= tolerance * ||b||`` over the whole field, or reaches the rounding
     floor ``0.5 eps ||diag(A) u||`` where that is larger: the residual that storing ``u`` in the
     dtype alone leaves (no iterate does better). Only float32 on stiff systems meets it (fine or
@@ -187,11 +196,15 @@ def sobolev_deform_points(
         check_host_index_range(host_cells, num_points, _index_range_message(num_points))
         if x.size and cells.shape[0] and not isinstance(x, jax.core.Tracer):
             _check_nondegenerate(x, cells)
-        if not backend.is_warp and cells.shape[0]:
+        if cells.shape[0]:
+            # Padded rows and their coarsening, once per topology: the JAX path's products and
+            # both paths' multilevel preconditioner.
             pattern = row_pattern(host_cells, num_points)
+    hierarchy = None if pattern is None else aggregation_hierarchy(pattern)
     deform = functools.partial(
         _deform,
         pattern=pattern,
+        hierarchy=hierarchy,
         length_scale_squared=jnp.asarray(length_scale * length_scale, dtype),
         tolerance=jnp.asarray(tolerance, dtype),
         max_iterations=max_iterations,
@@ -271,7 +284,7 @@ def _masked(field: jax.Array, free: jax.Array | None) -> jax.Array:
 
 
 @functools.partial(jax.jit, static_argnames=("max_iterations", "backend", "check_indices"))
-def _deform(points, cells, displacement, free, pattern, length_scale_squared, tolerance, *, max_iterations, backend, check_indices):
+def _deform(points, cells, displacement, free, pattern, hierarchy, length_scale_squared, tolerance, *, max_iterations, backend, check_indices):
     """``x + u`` for ``(B, N, D)`` inputs, ``l > 0``; index and degeneracy checks under ``error_if``."""
     num_points = points.shape[1]
     if check_indices:
@@ -281,24 +294,36 @@ def _deform(points, cells, displacement, free, pattern, length_scale_squared, to
         return points + _masked(displacement, free)
     cells = cells.astype(jnp.int32)
     if backend.is_warp:
+        # The topology's arrays are operands, not closed over: the Warp path's transforms
+        # (fast_with_reference, which takes arrays) cannot close over the tracers they are here.
+        topology, structure = jax.tree.flatten((pattern, hierarchy))
+
+        def with_topology(field_fn):
+            def run(points, displacement, free, cells, length_scale_squared, tolerance, *topology):
+                pattern, hierarchy = jax.tree.unflatten(structure, topology)
+                return field_fn(points, displacement, free, cells, length_scale_squared, tolerance, pattern, hierarchy, max_iterations=max_iterations)
+
+            return run
+
         referenced, field = backend.run(
-            functools.partial(_warp_field, max_iterations=max_iterations),
-            functools.partial(_jax_field, pattern=None, max_iterations=max_iterations),
-            points, displacement, free, cells, length_scale_squared, tolerance,
-        )  # fmt: skip
+            with_topology(_warp_field), with_topology(_jax_field), points, displacement, free, cells, length_scale_squared, tolerance, *topology
+        )
     else:
-        referenced, field = _jax_field(points, displacement, free, cells, length_scale_squared, tolerance, pattern=pattern, max_iterations=max_iterations)
+        referenced, field = _jax_field(points, displacement, free, cells, length_scale_squared, tolerance, pattern, hierarchy, max_iterations=max_iterations)
     # Unreferenced rows decouple (m̄ u = m̄ d): make them exact whatever the solver's start.
     field = jnp.where(referenced[:, None], field, displacement)
     return points + _masked(field, free)
 
 
-def _jax_field(points, displacement, free, cells, length_scale_squared, tolerance, *, pattern: RowPattern | None, max_iterations):
+def _jax_field(
+    points, displacement, free, cells, length_scale_squared, tolerance, pattern: RowPattern | None, hierarchy: tuple[Coarsening, ...] | None, *,
+    max_iterations,
+):  # fmt: skip
     """``(referenced, u)`` on the JAX path: which vertices a cell references, and the field."""
     referenced = referenced_vertices(cells, points.shape[1]) if pattern is None else pattern.referenced
     num_referenced = jnp.sum(referenced, dtype=jnp.int32)
     solve = functools.partial(
-        _jax_solve, cells=cells, pattern=pattern, num_referenced=num_referenced,
+        _jax_solve, cells=cells, pattern=pattern, hierarchy=hierarchy, num_referenced=num_referenced,
         length_scale_squared=length_scale_squared, tolerance=tolerance, max_iterations=max_iterations,
     )  # fmt: skip
     return referenced, _one_by_one(solve, points, displacement, free)
@@ -327,19 +352,18 @@ def _checked_stiffness(points, cells):
 # JAX implementation: lineax solve with our Jacobi-PCG (implicit differentiation, jvp, vmap).
 
 
-def _jax_solve(points, displacement, free, *, cells, pattern: RowPattern | None, num_referenced,
+def _jax_solve(points, displacement, free, *, cells, pattern: RowPattern | None, hierarchy, num_referenced,
                length_scale_squared, tolerance, max_iterations):  # fmt: skip
     """``u`` for one item ``(N, D)``."""
     local, measures = _checked_stiffness(points, cells)
-    stiffness: StiffnessOperator
-    if pattern is None:
-        stiffness = CellStiffness.assemble(local, cells, points.shape[0])
-    else:
-        stiffness = RowStiffness.assemble(local, pattern)
+    rows = None if pattern is None else RowStiffness.assemble(local, pattern)
+    stiffness: StiffnessOperator = CellStiffness.assemble(local, cells, points.shape[0]) if rows is None else rows
     mass = uniform_lumped_mass(measures, num_referenced)
     operator = HelmholtzOperator(stiffness, mass, length_scale_squared, free)
     rhs = _masked(mass * displacement, free)
-    options = {"inverse_diagonal": jax.lax.stop_gradient(operator.inverse_diagonal()), "y0": jax.lax.stop_gradient(_masked(displacement, free))}
+    options: dict[str, Any] = {"inverse_diagonal": jax.lax.stop_gradient(operator.inverse_diagonal()), "y0": jax.lax.stop_gradient(_masked(displacement, free))}
+    if rows is not None and hierarchy is not None:  # a host pattern comes with its hierarchy
+        options["preconditioner"] = MultilevelPreconditioner.for_helmholtz(rows, mass, length_scale_squared, free, hierarchy)
     solver = JacobiPCG(tolerance, max_iterations, _NAME)
     structure = jax.ShapeDtypeStruct(points.shape, points.dtype)
     return lx.linear_solve(operator.as_linear_operator(structure), rhs, solver, options=options).value
@@ -366,48 +390,58 @@ class _WarpStiffness(eqx.Module):
         return stiffness_diagonal(self.off_diagonal, self.cells, self.offsets, self.order)
 
 
-def _warp_field(points, displacement, free, cells, length_scale_squared, tolerance, *, max_iterations):
+def _warp_field(points, displacement, free, cells, length_scale_squared, tolerance, pattern: RowPattern | None, hierarchy, *, max_iterations):
     from warp_ffi.sobolev import vertex_incidence
 
     incidence = vertex_incidence(cells, points.shape[1])
     referenced = jnp.diff(incidence[0]) > 0
     num_referenced = jnp.sum(referenced, dtype=jnp.int32)
+    rows = None if pattern is None else (pattern, hierarchy)
 
     def solve(x, d, f):
-        return _warp_solve(x, d, f, cells, incidence, num_referenced, length_scale_squared, tolerance, max_iterations)
+        return _warp_solve(x, d, f, cells, incidence, num_referenced, length_scale_squared, tolerance, rows, max_iterations)
 
     return referenced, _one_by_one(solve, points, displacement, free)
 
 
-def _warp_operator(points, free, cells, incidence, num_referenced, length_scale_squared):
+def _warp_operator(points, free, cells, incidence, num_referenced, length_scale_squared, rows):
+    """The operator with Warp products, and the multilevel preconditioner when ``rows`` holds the
+    topology's ``(pattern, hierarchy)`` (else ``None``: Jacobi)."""
     local, measures = _checked_stiffness(points, cells)
     stiffness = _WarpStiffness(off_diagonal_entries(local), cells, *incidence)
-    return HelmholtzOperator(stiffness, uniform_lumped_mass(measures, num_referenced), length_scale_squared, free)
+    operator = HelmholtzOperator(stiffness, uniform_lumped_mass(measures, num_referenced), length_scale_squared, free)
+    if rows is None:
+        return operator, None
+    pattern, hierarchy = rows
+    padded = RowStiffness.assemble(local, pattern)
+    return operator, MultilevelPreconditioner.for_helmholtz(padded, operator.mass, length_scale_squared, free, hierarchy)
 
 
-def _warp_pcg(operator, rhs, guess, tolerance, max_iterations):
-    result = jacobi_pcg(operator.mv, rhs, operator.inverse_diagonal(), guess, rtol=tolerance, max_steps=max_iterations)
-    return solution_or_error(result, max_steps=max_iterations, context=_NAME)
+def _warp_pcg(operator, preconditioner, rhs, guess, tolerance, max_iterations):
+    result = jacobi_pcg(operator.mv, rhs, operator.inverse_diagonal(), guess, rtol=tolerance, max_steps=max_iterations, preconditioner=preconditioner)
+    method = "Jacobi-PCG" if preconditioner is None else preconditioner.method
+    return solution_or_error(result, max_steps=max_iterations, context=_NAME, method=method)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(8,))
-def _warp_solve(points, displacement, free, cells, incidence, num_referenced, length_scale_squared, tolerance, max_iterations):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(9,))
+def _warp_solve(points, displacement, free, cells, incidence, num_referenced, length_scale_squared, tolerance, rows, max_iterations):
     """``u`` for one item, the products in Warp; the VJP is the implicit adjoint (one more solve)."""
-    return _warp_solve_fwd(points, displacement, free, cells, incidence, num_referenced, length_scale_squared, tolerance, max_iterations)[0]
+    return _warp_solve_fwd(points, displacement, free, cells, incidence, num_referenced, length_scale_squared, tolerance, rows, max_iterations)[0]
 
 
-def _warp_solve_fwd(points, displacement, free, cells, incidence, num_referenced, length_scale_squared, tolerance, max_iterations):
-    operator = _warp_operator(points, free, cells, incidence, num_referenced, length_scale_squared)
+def _warp_solve_fwd(points, displacement, free, cells, incidence, num_referenced, length_scale_squared, tolerance, rows, max_iterations):
+    operator, preconditioner = _warp_operator(points, free, cells, incidence, num_referenced, length_scale_squared, rows)
     guess = _masked(displacement, free)
-    field = _warp_pcg(operator, operator.mass * guess, guess, tolerance, max_iterations)
-    residuals = (points, displacement, free, cells, num_referenced, length_scale_squared, tolerance, field, operator)
+    field = _warp_pcg(operator, preconditioner, operator.mass * guess, guess, tolerance, max_iterations)
+    residuals = (points, displacement, free, cells, num_referenced, length_scale_squared, tolerance, field, operator, preconditioner)
     return field, residuals
 
 
 def _warp_solve_bwd(max_iterations, residuals, field_bar):
-    points, displacement, free, cells, num_referenced, length_scale_squared, tolerance, field, operator = residuals
-    # A is symmetric: the adjoint solve uses the same operator, from a zero initial guess.
-    adjoint = _warp_pcg(operator, _masked(field_bar, free), jnp.zeros_like(field_bar), tolerance, max_iterations)
+    points, displacement, free, cells, num_referenced, length_scale_squared, tolerance, field, operator, preconditioner = residuals
+    # A is symmetric: the adjoint solve uses the same operator and preconditioner, from a zero
+    # initial guess.
+    adjoint = _warp_pcg(operator, preconditioner, _masked(field_bar, free), jnp.zeros_like(field_bar), tolerance, max_iterations)
     adjoint = _masked(adjoint, free)
     displacement_bar = operator.mass * adjoint
     data = _masked(displacement, free) - field
@@ -421,7 +455,7 @@ def _warp_solve_bwd(max_iterations, residuals, field_bar):
         return mass * jnp.sum(adjoint * data) - length_scale_squared * jnp.sum(off_diagonal_entries(local) * coupling)
 
     points_bar = jax.grad(residual)(points)
-    return points_bar, displacement_bar, None, None, None, None, None, None
+    return points_bar, displacement_bar, None, None, None, None, None, None, None
 
 
 _warp_solve.defvjp(_warp_solve_fwd, _warp_solve_bwd)

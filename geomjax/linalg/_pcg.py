@@ -1,4 +1,4 @@
-"""Jacobi-preconditioned conjugate gradients on ``(N, D)`` blocks, and a lineax solver around it.
+"""Preconditioned conjugate gradients on ``(N, D)`` blocks (Jacobi unless a preconditioner is given), and a lineax solver around it.
 
 Why not ``lineax.CG`` as shipped: with ``atol=0`` and a sparse right-hand side its per-element
 scale ``rtol * |b|`` is zero almost everywhere, so it stops after one step with a wrong answer;
@@ -78,17 +78,22 @@ def jacobi_pcg(
     *,
     rtol: float | Array,
     max_steps: int,
+    preconditioner: Callable[[Array], Array] | None = None,
 ) -> PCGResult:
-    """Solve ``A X = B`` column by column with Jacobi-preconditioned CG (see the module docstring).
+    """Solve ``A X = B`` column by column with preconditioned CG (see the module docstring).
 
     Args:
         matvec: ``X -> A X`` for a symmetric positive definite ``A`` that acts on every column
             alike (``A`` ⊗ ``I_D``); called on ``(N, D)`` arrays.
         rhs: ``B``, shape ``(N, D)``, ``N >= 1``.
-        inverse_diagonal: positive ``(N,)`` Jacobi preconditioner ``1 / diag(A)``.
+        inverse_diagonal: positive ``(N,)`` ``1 / diag(A)``: the preconditioner (Jacobi) unless
+            ``preconditioner`` is given, and the scale of the rounding floor in any case.
         initial_guess: ``(N, D)`` starting point, used only if it beats zero.
         rtol: relative tolerance on ``||B - A X||_F / ||B||_F`` (a scalar, may be traced).
         max_steps: the most CG iterations, counted over restarts.
+        preconditioner: optional ``R -> M^-1 R`` on ``(N, D)`` blocks, symmetric positive
+            definite and acting on every column alike (e.g.
+            :class:`~geomjax.linalg.MultilevelPreconditioner`); ``None`` is Jacobi.
 
     Returns:
         :class:`PCGResult`. ``converged`` is true only when the true residual meets the tolerance
@@ -101,6 +106,9 @@ def jacobi_pcg(
     tiny = jnp.asarray(jnp.finfo(dtype).tiny, dtype)
     one = jnp.ones((), dtype)
     inverse_diagonal = inverse_diagonal[:, None]
+
+    def precondition(r):
+        return r * inverse_diagonal if preconditioner is None else preconditioner(r)
 
     largest = jnp.max(jnp.abs(rhs))
     finite_rhs = jnp.isfinite(largest)
@@ -139,10 +147,10 @@ def jacobi_pcg(
         alpha = jnp.where(unsolved & regular, gamma / jnp.where(regular, curvature, one), 0)
         x = x + alpha * p
         r = r - alpha * ap
-        # z = M^-1 r is recomputed where needed rather than stored: one pass less per iteration.
-        gamma_next = _column_dot(r, r * inverse_diagonal)
+        z = precondition(r)
+        gamma_next = _column_dot(r, z)
         beta = jnp.where(unsolved, gamma_next / jnp.where(unsolved, gamma, one), 0)
-        p = r * inverse_diagonal + beta * p
+        p = z + beta * p
         rr = squared_norm(r)
         # r^T M^-1 r < 0 means the preconditioner is not positive: no CG recurrence applies.
         broken = broken | ~jnp.all(jnp.isfinite(gamma_next) & (gamma_next >= 0)) | ~jnp.isfinite(rr)
@@ -151,7 +159,7 @@ def jacobi_pcg(
     def restart(state):
         # ``r`` is a true residual here; iterate on the recurrence, then recompute it exactly.
         x, r, rr, steps, broken = state
-        z = r * inverse_diagonal
+        z = precondition(r)
         gamma = _column_dot(r, z)
         # The recurrence runs to the level accepted at the restart's start (the floor moves with
         # ``x``, little once near the solution; the true residual below decides).
@@ -178,9 +186,9 @@ def jacobi_pcg(
     return PCGResult(x * scale, steps, converged, broken, converged & ~(rr <= threshold))
 
 
-def solution_or_error(result: PCGResult, *, max_steps: int, context: str) -> Array:
+def solution_or_error(result: PCGResult, *, max_steps: int, context: str, method: str = "Jacobi-PCG") -> Array:
     """``result.solution``, guarded by a runtime check (``RuntimeError``) if the solve failed
-    (see :class:`JacobiPCG`)."""
+    (see :class:`JacobiPCG`); ``method`` names the solver in the messages."""
     failure = jnp.where(result.breakdown, 2, jnp.where(result.converged, 0, 1))
     return runtime_branched_check(
         result.solution,
@@ -188,15 +196,19 @@ def solution_or_error(result: PCGResult, *, max_steps: int, context: str) -> Arr
         failure,
         (
             "",
-            f"{context}: the Jacobi-PCG solve did not converge within {max_steps} iterations. Increase max_iterations "
-            "or relax tolerance (Jacobi-PCG needs more iterations where cells are badly shaped or much smaller than "
+            f"{context}: the {method} solve did not converge within {max_steps} iterations. Increase max_iterations "
+            f"or relax tolerance ({method} needs more iterations where cells are badly shaped or much smaller than "
             "length_scale)",
-            f"{context}: the Jacobi-PCG solve did not converge (breakdown: non-finite values or a "
+            f"{context}: the {method} solve did not converge (breakdown: non-finite values or a "
             "non-positive curvature p^T A p). Check that the inputs are finite; increase "
             "max_iterations or relax tolerance",
         ),
         RuntimeError,
     )
+
+
+def _without_guess(options: dict[str, Any]) -> dict[str, Any]:
+    return {key: value for key, value in options.items() if key != "y0"}
 
 
 class JacobiPCG(lx.AbstractLinearSolver):
@@ -210,7 +222,9 @@ class JacobiPCG(lx.AbstractLinearSolver):
     Options (``options=`` of ``lineax.linear_solve``; both must be free of gradients, e.g.
     wrapped in ``jax.lax.stop_gradient``):
 
-    * ``"inverse_diagonal"`` (required): ``(N,)`` Jacobi preconditioner.
+    * ``"inverse_diagonal"`` (required): ``(N,)`` ``1 / diag(A)``, the Jacobi preconditioner.
+    * ``"preconditioner"``: a symmetric positive definite ``R -> M^-1 R`` used instead of Jacobi
+      (a pytree such as :class:`~geomjax.linalg.MultilevelPreconditioner`), for every solve.
     * ``"y0"``: initial guess, ``(N, D)``; dropped for the transposed (adjoint) solve.
 
     Failure (non-convergence within ``max_steps`` or breakdown) raises a ``RuntimeError``
@@ -241,16 +255,19 @@ class JacobiPCG(lx.AbstractLinearSolver):
         guess = options.get("y0")
         if guess is None:
             guess = jnp.zeros_like(vector)
-        result = jacobi_pcg(operator.mv, vector, options["inverse_diagonal"], guess, rtol=self.rtol, max_steps=self.max_steps)
-        solution = solution_or_error(result, max_steps=self.max_steps, context=self.context)
+        preconditioner = options.get("preconditioner")
+        result = jacobi_pcg(operator.mv, vector, options["inverse_diagonal"], guess, rtol=self.rtol, max_steps=self.max_steps, preconditioner=preconditioner)
+        method = "Jacobi-PCG" if preconditioner is None else getattr(preconditioner, "method", "PCG")
+        solution = solution_or_error(result, max_steps=self.max_steps, context=self.context, method=method)
         return solution, lx.RESULTS.successful, {"num_steps": result.num_steps}
 
     def transpose(self, state, options: dict[str, Any]):
-        # Symmetric operator: the adjoint solve reuses it, without the forward initial guess.
-        return state.transpose(), {"inverse_diagonal": options["inverse_diagonal"]}
+        # Symmetric operator: the adjoint solve reuses it (and the preconditioner), without the
+        # forward initial guess.
+        return state.transpose(), _without_guess(options)
 
     def conj(self, state, options: dict[str, Any]):
-        return state, {"inverse_diagonal": options["inverse_diagonal"]}
+        return state, _without_guess(options)
 
     def assume_full_rank(self) -> bool:
         return True

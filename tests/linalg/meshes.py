@@ -72,6 +72,9 @@ MESHES = {
     "segments-3d": lambda: polyline(9, 3),
     "triangles-2d": lambda: grid_triangles(5, 4),
     "triangles-3d": lambda: grid_triangles(5, 4, embed=True),
+    # More vertices than the multilevel preconditioner solves directly (COARSEST_SIZE): a V-cycle
+    # with one coarsening step, so a solve needs several iterations.
+    "triangles-fine": lambda: grid_triangles(16, 14),
     "tetrahedra": lambda: kuhn_simplices(2, 3),
     "4-simplices": lambda: kuhn_simplices(1, 4),
 }
