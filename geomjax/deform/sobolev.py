@@ -52,6 +52,12 @@ __all__ = ["sobolev_deform_points"]
 
 DEFAULT_TOLERANCE = {jnp.dtype(jnp.float32): 1e-6, jnp.dtype(jnp.float64): 1e-10}
 WARP_MAX_CELL_POINTS = 4  # segments, triangles, tetrahedra
+# The JAX path preconditions with Jacobi where a bound on Jacobi-CG's iterations is at most this
+# (or three quarters of max_iterations, if smaller), else with the multilevel V-cycle: a cycle
+# costs about four Jacobi iterations on a CPU and saves 3-7x the iterations, so it pays only where
+# Jacobi needs many (benchmarks/bench_real_meshes.py). The Warp path always cycles: its stiffness
+# products cost more than the JAX V-cycle, which then pays at any count.
+JACOBI_ITERATIONS = 96
 
 _NAME = "sobolev_deform_points"
 _DEGENERATE = "cells must be finite, nondegenerate simplices (every Gram determinant finite and > 0 when length_scale > 0)"
@@ -363,7 +369,9 @@ def _jax_solve(points, displacement, free, *, cells, pattern: RowPattern | None,
     rhs = _masked(mass * displacement, free)
     options: dict[str, Any] = {"inverse_diagonal": jax.lax.stop_gradient(operator.inverse_diagonal()), "y0": jax.lax.stop_gradient(_masked(displacement, free))}
     if rows is not None and hierarchy is not None:  # a host pattern comes with its hierarchy
-        options["preconditioner"] = MultilevelPreconditioner.for_helmholtz(rows, mass, length_scale_squared, free, hierarchy)
+        # Jacobi where it is bound to finish soon (a V-cycle would cost more than it saves).
+        jacobi_within = (tolerance, min(JACOBI_ITERATIONS, 3 * max_iterations // 4))
+        options["preconditioner"] = MultilevelPreconditioner.for_helmholtz(rows, mass, length_scale_squared, free, hierarchy, jacobi_within=jacobi_within)
     solver = JacobiPCG(tolerance, max_iterations, _NAME)
     structure = jax.ShapeDtypeStruct(points.shape, points.dtype)
     return lx.linear_solve(operator.as_linear_operator(structure), rhs, solver, options=options).value

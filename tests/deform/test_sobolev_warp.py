@@ -77,9 +77,12 @@ def test_values_match_the_jax_path_and_the_dense_solve(mesh, dtype):
     points = jnp.concatenate([points, jnp.full((1, points.shape[1]), 5.0, dtype)])  # one isolated vertex
     displacement = _field(points.shape, dtype, seed=3)
     fixed = jnp.zeros(points.shape[0], bool).at[2].set(True)
-    warp = _sobolev(points, cells, displacement, fixed_points=fixed)
+    # Solved tightly in float64: the two paths may precondition differently (the JAX path picks
+    # Jacobi on meshes this easy), so their iterates agree only to the tolerance.
+    tight = {"tolerance": 1e-13} if dtype == jnp.float64 else {}
+    warp = _sobolev(points, cells, displacement, fixed_points=fixed, **tight)
     assert warp.dtype == dtype and warp.shape == points.shape
-    np.testing.assert_allclose(warp, _sobolev(points, cells, displacement, "jax", fixed_points=fixed), rtol=0,
+    np.testing.assert_allclose(warp, _sobolev(points, cells, displacement, "jax", fixed_points=fixed, **tight), rtol=0,
                                atol={jnp.float32: 2e-6, jnp.float64: 1e-12}[dtype])  # fmt: skip
     if dtype == jnp.float64:
         np.testing.assert_allclose(warp, dense_sobolev(points, cells, displacement, LENGTH, fixed), rtol=1e-8, atol=1e-9)

@@ -11,6 +11,7 @@ import pytest
 
 from geomjax import sobolev_deform_points
 from geomjax.linalg import MultilevelPreconditioner, RowStiffness, aggregation_hierarchy, row_pattern, simplex_stiffness, uniform_lumped_mass
+from geomjax.linalg._multilevel import jacobi_iteration_bound
 
 from .meshes import MESHES, dense_stiffness
 
@@ -19,7 +20,7 @@ LENGTH = 0.3
 
 def _problem():
     """The Sobolev system of a jittered grid with obtuse cells and three fixed rows: the dense
-    matrix (independent assembly), the preconditioner and the hierarchy."""
+    matrix (independent assembly), the preconditioner, the hierarchy and the uniform mass m̄."""
     points, cells = MESHES["triangles-fine"]()
     points, cells = jnp.asarray(points), jnp.asarray(cells)
     free = np.ones(points.shape[0], bool)
@@ -37,7 +38,7 @@ def _problem():
     matrix[~free, :] = 0
     matrix[:, ~free] = 0
     matrix[~free, ~free] = 1
-    return matrix, preconditioner, hierarchy
+    return matrix, preconditioner, hierarchy, float(mass)
 
 
 def _dense(mass, couplings, neighbours):
@@ -52,14 +53,14 @@ def _dense(mass, couplings, neighbours):
 
 
 def test_the_fixture_coarsens_twice():
-    _, preconditioner, hierarchy = _problem()
+    _, preconditioner, hierarchy, _ = _problem()
     sizes = [level.mass.shape[0] for level in preconditioner.levels]
     assert len(hierarchy) >= 1 and sizes[0] == 224 and sizes[-1] <= 150, sizes
     assert aggregation_hierarchy(row_pattern(MESHES["triangles-fine"]()[1], 224)) is hierarchy  # cached per topology
 
 
 def test_every_level_is_the_galerkin_product_of_the_one_above():
-    matrix, preconditioner, hierarchy = _problem()
+    matrix, preconditioner, hierarchy, _ = _problem()
     finest = preconditioner.levels[0]
     np.testing.assert_allclose(_dense(finest.mass, finest.couplings, finest.neighbours), matrix, rtol=1e-12, atol=1e-15)
     for step, coarse in zip(hierarchy, preconditioner.levels[1:]):
@@ -70,7 +71,7 @@ def test_every_level_is_the_galerkin_product_of_the_one_above():
 
 
 def test_the_v_cycle_is_symmetric_positive_definite_and_beats_jacobi():
-    matrix, preconditioner, _ = _problem()
+    matrix, preconditioner, _, _ = _problem()
     # M^-1 column by column: the cycle acts on (N, D) blocks, here D = N.
     inverse = np.asarray(jax.jit(lambda p, r: p(r))(preconditioner, jnp.eye(matrix.shape[0])))
     np.testing.assert_allclose(inverse, inverse.T, rtol=0, atol=1e-12 * np.abs(inverse).max())
@@ -83,6 +84,17 @@ def test_the_v_cycle_is_symmetric_positive_definite_and_beats_jacobi():
     jacobi = condition(matrix / np.diag(matrix)[:, None])
     multilevel = condition(inverse @ matrix)
     assert multilevel < jacobi / 4, (multilevel, jacobi)
+
+
+def test_the_jacobi_iteration_bound_bounds_the_condition_number():
+    matrix, preconditioner, _, mass = _problem()
+    finest = preconditioner.levels[0]
+    tolerance = 1e-10
+    smallest = min(mass, 1.0)  # A >= m̄ I on the free rows (m̄ I + a block of K); fixed rows are identity rows
+    bound = float(jacobi_iteration_bound(finest.mass, finest.couplings, jnp.asarray(smallest), tolerance))
+    values = np.linalg.eigvals(matrix / np.diag(matrix)[:, None]).real
+    exact = 0.5 * np.sqrt(values.max() / values.min()) * np.log(2 / tolerance)
+    assert exact <= bound < 10 * exact, (exact, bound)
 
 
 # ---------------------------------------------------------------------------------------------
