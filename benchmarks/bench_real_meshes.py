@@ -20,10 +20,15 @@ Section "sobolev", one row per mesh:
   tolerance 1e-10 in float64, 1e-6 in float32), and then the best-of-``--repeat`` time of a jitted
   call (compile excluded); ``failure`` holds the first line of the ``RuntimeError`` of those that
   did not converge.
-* ``iters_f64`` / ``iters_f32``: the exact number of Jacobi-PCG iterations geomjax needs (``"jax"``),
-  from its internals: ``geomjax.linalg.jacobi_pcg`` on the same operator, right-hand side, start
-  and tolerance, 4096 iterations at most (``">4096"``: not converged), in one run rather than a
-  search over ``max_iterations``. ``final_res_f32`` is the relative true residual that float32
+* ``iters_f64`` / ``iters_f32``: the exact number of PCG iterations geomjax needs (``"jax"``, its
+  multilevel preconditioner), from its internals: ``geomjax.linalg.jacobi_pcg`` on the same
+  operator, preconditioner, right-hand side, start and tolerance, 4096 iterations at most
+  (``">4096"``: not converged), in one run rather than a search over ``max_iterations``.
+  ``jacobi_iters_f64`` / ``jacobi_iters_f32``: the same with the Jacobi preconditioner (geomjax's
+  before the multilevel one, and still its choice for traced ``cells``). The default JAX call
+  picks Jacobi where its a-priori bound on these Jacobi counts is at most 96 (here
+  decimated-knight, icosphere(6), and 3holes in float32) and the V-cycle elsewhere; the Warp path
+  always cycles. ``final_res_f32`` is the relative true residual that float32
   solve ends with: below 1e-6 when it converged, else the float32 residual floor after 4096
   iterations. ``counts_match_public``: both counts agree with the public calls (a count <= 128
   exactly when the default ``"jax"`` call converged); in float32 the floor lies close to the
@@ -74,7 +79,17 @@ jax.config.update("jax_enable_x64", True)
 
 from geomjax import documented_errors, icosphere, sobolev_deform_points
 from geomjax.deform.sobolev import DEFAULT_TOLERANCE
-from geomjax.linalg import CellStiffness, HelmholtzOperator, RowStiffness, jacobi_pcg, row_pattern, simplex_stiffness, uniform_lumped_mass
+from geomjax.linalg import (
+    CellStiffness,
+    HelmholtzOperator,
+    MultilevelPreconditioner,
+    RowStiffness,
+    aggregation_hierarchy,
+    jacobi_pcg,
+    row_pattern,
+    simplex_stiffness,
+    uniform_lumped_mass,
+)
 
 # The shared mesh folder sits beside the checkout (``<checkout>/../shared/meshes``).
 MESH_DIR = Path(os.environ.get("GEOMJAX_MESH_DIR", Path(__file__).resolve().parents[2] / "shared" / "meshes"))
@@ -174,14 +189,17 @@ def assemble_system(points: np.ndarray, cells: np.ndarray) -> tuple[sp.csr_matri
     return (mass * sp.identity(num_points, format="csr") + LENGTH_SCALE**2 * stiffness).tocsr(), mass, referenced
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps",))
-def _geomjax_pcg(points, displacement, cells, pattern, *, max_steps):
+@functools.partial(jax.jit, static_argnames=("max_steps", "multilevel"))
+def _geomjax_pcg(points, displacement, cells, pattern, hierarchy, *, max_steps, multilevel):
     """geomjax's own solve (``sobolev._jax_solve``, nothing fixed) without the error check.
 
     Returns ``(num_steps, converged, relative true residual)``: the same operator, right-hand side,
-    start and tolerance as the public call, so ``num_steps`` is the iteration count it needs.
+    start and tolerance as the public call, so ``num_steps`` is the iteration count it needs, with
+    its multilevel preconditioner (``multilevel``) or with Jacobi (the preconditioner before it,
+    and still the one for traced cells).
     """
     local, measures, _ = simplex_stiffness(points, cells)
+    preconditioner = None
     if pattern is None:  # row_pattern declined (too much padding): geomjax uses per-cell products
         stiffness = CellStiffness.assemble(local, cells, points.shape[0])
         num_referenced = jnp.sum(jnp.zeros(points.shape[0], bool).at[cells.reshape(-1)].set(True), dtype=jnp.int32)
@@ -189,20 +207,27 @@ def _geomjax_pcg(points, displacement, cells, pattern, *, max_steps):
         stiffness = RowStiffness.assemble(local, pattern)
         num_referenced = jnp.sum(pattern.referenced, dtype=jnp.int32)
     mass = uniform_lumped_mass(measures, num_referenced)
-    operator = HelmholtzOperator(stiffness, mass, jnp.asarray(LENGTH_SCALE**2, points.dtype), None)
+    length_scale_squared = jnp.asarray(LENGTH_SCALE**2, points.dtype)
+    operator = HelmholtzOperator(stiffness, mass, length_scale_squared, None)
+    if multilevel and pattern is not None:
+        preconditioner = MultilevelPreconditioner.for_helmholtz(stiffness, mass, length_scale_squared, None, hierarchy)
     rhs = mass * displacement
     tolerance = jnp.asarray(DEFAULT_TOLERANCE[jnp.dtype(points.dtype)], points.dtype)
-    result = jacobi_pcg(operator.mv, rhs, operator.inverse_diagonal(), displacement, rtol=tolerance, max_steps=max_steps)
+    result = jacobi_pcg(
+        operator.mv, rhs, operator.inverse_diagonal(), displacement, rtol=tolerance, max_steps=max_steps, preconditioner=preconditioner
+    )
     residual = jnp.linalg.norm(rhs - operator.mv(result.solution)) / jnp.linalg.norm(rhs)
     return result.num_steps, result.converged, residual
 
 
-def geomjax_iterations(mesh: RealMesh, displacement: np.ndarray, dtype, max_steps: int) -> tuple[int | str, float]:
+def geomjax_iterations(mesh: RealMesh, displacement: np.ndarray, dtype, max_steps: int, multilevel: bool = True) -> tuple[int | str, float]:
     """Exact iterations geomjax needs (``">max_steps"`` if it does not converge) and the final relative residual."""
     pattern = row_pattern(mesh.cells, len(mesh.points))
+    hierarchy = None if pattern is None else aggregation_hierarchy(pattern)
     steps, converged, residual = _geomjax_pcg(
-        jnp.asarray(mesh.points, dtype), jnp.asarray(displacement, dtype), jnp.asarray(mesh.cells), pattern, max_steps=max_steps
-    )
+        jnp.asarray(mesh.points, dtype), jnp.asarray(displacement, dtype), jnp.asarray(mesh.cells), pattern, hierarchy,
+        max_steps=max_steps, multilevel=multilevel,
+    )  # fmt: skip
     return (int(steps) if bool(converged) else f">{max_steps}"), float(residual)
 
 
@@ -320,9 +345,11 @@ def sobolev_rows(meshes: list[RealMesh], repeat: int, max_counted_iterations: in
 
         for label, dtype in DTYPES.items():
             row[f"iters_{label}"], row[f"final_res_{label}"] = geomjax_iterations(mesh, displacement, dtype, max_counted_iterations)
+            row[f"jacobi_iters_{label}"], _ = geomjax_iterations(mesh, displacement, dtype, max_counted_iterations, multilevel=False)
         print(
-            f"  geomjax iterations (exact, jax): f64 {row['iters_f64']}, f32 {row['iters_f32']} "
-            f"(final relative residual f64 {row['final_res_f64']:.1e}, f32 {row['final_res_f32']:.1e})",
+            f"  geomjax iterations (exact, jax, multilevel): f64 {row['iters_f64']}, f32 {row['iters_f32']} "
+            f"(final relative residual f64 {row['final_res_f64']:.1e}, f32 {row['final_res_f32']:.1e}); "
+            f"with Jacobi: f64 {row['jacobi_iters_f64']}, f32 {row['jacobi_iters_f32']}",
             flush=True,
         )
         del row["final_res_f64"]  # printed; below 1e-10 whenever iters_f64 is a count
