@@ -32,8 +32,6 @@ valid, only a little less sharp where a mask cuts an aggregate.
 from __future__ import annotations
 
 import collections
-import hashlib
-import threading
 from typing import NamedTuple
 
 import equinox as eqx
@@ -43,7 +41,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._validate import as_jax_array
-from ._stiffness import RowPattern, RowStiffness
+from ._stiffness import RowPattern, RowStiffness, TopologyCache
 
 __all__ = ["COARSEST_SIZE", "Coarsening", "aggregation_hierarchy", "MultilevelPreconditioner", "jacobi_iteration_bound"]
 
@@ -81,9 +79,7 @@ class Coarsening(NamedTuple):
     neighbour_aggregates: Int[Array, "n W"]
 
 
-_CACHE: collections.OrderedDict = collections.OrderedDict()
-_CACHE_SIZE = 8
-_LOCK = threading.Lock()
+_HIERARCHIES = TopologyCache()
 
 
 def aggregation_hierarchy(pattern: RowPattern) -> tuple[Coarsening, ...]:
@@ -93,26 +89,21 @@ def aggregation_hierarchy(pattern: RowPattern) -> tuple[Coarsening, ...]:
     concrete even when first built while tracing.
     """
     neighbours = np.asarray(pattern.neighbours)
-    key = (neighbours.shape, hashlib.blake2b(neighbours.tobytes(), digest_size=16).digest())
-    with _LOCK:
-        if key in _CACHE:
-            _CACHE.move_to_end(key)
-            return _CACHE[key]
-    steps = []
-    while neighbours.shape[0] > COARSEST_SIZE:
-        aggregate, count = _aggregate(neighbours)
-        if count * _MIN_COARSENING > neighbours.shape[0]:
-            break
-        coarse_neighbours, slots = _coarse_pattern(neighbours, aggregate, count)
-        steps.append((aggregate, coarse_neighbours, slots, aggregate[neighbours]))
-        neighbours = coarse_neighbours
-    with jax.ensure_compile_time_eval():
-        hierarchy = tuple(Coarsening(*(as_jax_array(a.astype(np.int32)) for a in step)) for step in steps)
-    with _LOCK:
-        _CACHE[key] = hierarchy
-        while len(_CACHE) > _CACHE_SIZE:
-            _CACHE.popitem(last=False)
-    return hierarchy
+
+    def build() -> tuple[Coarsening, ...]:
+        steps = []
+        rows = neighbours
+        while rows.shape[0] > COARSEST_SIZE:
+            aggregate, count = _aggregate(rows)
+            if count * _MIN_COARSENING > rows.shape[0]:
+                break
+            coarse_rows, slots = _coarse_pattern(rows, aggregate, count)
+            steps.append((aggregate, coarse_rows, slots, aggregate[rows]))
+            rows = coarse_rows
+        with jax.ensure_compile_time_eval():
+            return tuple(Coarsening(*(as_jax_array(a.astype(np.int32)) for a in step)) for step in steps)
+
+    return _HIERARCHIES.get(neighbours, build)
 
 
 def _aggregate(neighbours: np.ndarray) -> tuple[np.ndarray, int]:

@@ -28,7 +28,8 @@ import collections
 import hashlib
 import math
 import threading
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple, TypeVar
 
 import equinox as eqx
 import jax
@@ -38,7 +39,10 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._validate import as_jax_array
 
+_T = TypeVar("_T")
+
 __all__ = [
+    "TopologyCache",
     "simplex_stiffness",
     "off_diagonal_pairs",
     "off_diagonal_entries",
@@ -146,9 +150,32 @@ class RowPattern(NamedTuple):
     referenced: Bool[Array, " N"]
 
 
-_PATTERN_CACHE: collections.OrderedDict = collections.OrderedDict()
-_PATTERN_CACHE_SIZE = 8
-_PATTERN_LOCK = threading.Lock()
+class TopologyCache:
+    """The last few structures built on the host from a mesh's index array, keyed on its contents
+    (thread-safe), so that repeated calls on one topology build them once."""
+
+    def __init__(self, size: int = 8):
+        self._entries: collections.OrderedDict = collections.OrderedDict()
+        self._size = size
+        self._lock = threading.Lock()
+
+    def get(self, index_array: np.ndarray, build: Callable[[], _T], *extra_key) -> _T:
+        """The cached value for ``(index_array's contents, *extra_key)``, else ``build()``."""
+        array = np.ascontiguousarray(index_array)
+        key = (*extra_key, array.shape, array.dtype.str, hashlib.blake2b(array.tobytes(), digest_size=16).digest())
+        with self._lock:
+            if key in self._entries:
+                self._entries.move_to_end(key)
+                return self._entries[key]
+        value = build()
+        with self._lock:
+            self._entries[key] = value
+            while len(self._entries) > self._size:
+                self._entries.popitem(last=False)
+        return value
+
+
+_PATTERNS = TopologyCache()
 # Padding may cost at most this factor over the number of stored entries; wider patterns (a vertex
 # shared by a huge fan of cells) use the per-cell product instead.
 _MAX_PADDING_FACTOR = 4
@@ -161,24 +188,18 @@ def row_pattern(cells: np.ndarray, num_points: int) -> RowPattern | None:
     Results are cached on the cell contents (a few of the most recent topologies), so repeated
     eager calls on one mesh pay for the pattern once.
     """
-    cells = np.ascontiguousarray(cells)
-    key = (num_points, cells.shape, cells.dtype.str, hashlib.blake2b(cells.tobytes(), digest_size=16).digest())
-    with _PATTERN_LOCK:
-        if key in _PATTERN_CACHE:
-            _PATTERN_CACHE.move_to_end(key)
-            return _PATTERN_CACHE[key]
-    host_pattern = _build_row_pattern(cells.astype(np.int64), num_points)
-    pattern: RowPattern | None = None
-    if host_pattern is not None:
+    cells = np.asarray(cells)
+
+    def build() -> RowPattern | None:
+        host_pattern = _build_row_pattern(cells.astype(np.int64), num_points)
+        if host_pattern is None:
+            return None
         # Kept on the device, so repeated eager calls do not copy the pattern again (concrete
         # arrays even when first built while tracing, so the cache never holds a tracer).
         with jax.ensure_compile_time_eval():
-            pattern = RowPattern(*(as_jax_array(a) for a in host_pattern))
-    with _PATTERN_LOCK:
-        _PATTERN_CACHE[key] = pattern
-        while len(_PATTERN_CACHE) > _PATTERN_CACHE_SIZE:
-            _PATTERN_CACHE.popitem(last=False)
-    return pattern
+            return RowPattern(*(as_jax_array(a) for a in host_pattern))
+
+    return _PATTERNS.get(cells, build, num_points)
 
 
 def _build_row_pattern(cells: np.ndarray, num_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
