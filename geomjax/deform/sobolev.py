@@ -97,9 +97,9 @@ def sobolev_deform_points(
     V-cycle (:class:`geomjax.linalg.MultilevelPreconditioner`: aggregation built once per
     topology on the host and cached, coarse operators from the current geometry, the coarsest
     solved directly), which needs 3-7x fewer iterations than Jacobi on fine or badly shaped meshes
-    and is exact on meshes of at most 150 vertices. The JAX path keeps Jacobi where an a-priori
-    bound says Jacobi-CG finishes within 96 iterations (a V-cycle costs about four Jacobi
-    iterations on a CPU); the Warp path always cycles. With traced ``cells`` (an argument of
+    and is exact on meshes of at most 150 vertices. On larger meshes the JAX path keeps Jacobi
+    where an a-priori bound says Jacobi-CG finishes within 96 iterations (a V-cycle costs about
+    four Jacobi iterations on a CPU); the Warp path always cycles. With traced ``cells`` (an argument of
     ``jit``) it is Jacobi. The solve starts from the masked ``d`` and runs until the true residual
     satisfies ``||b - A u|| <= tolerance * ||b||`` over the whole field, or reaches the rounding
     floor ``0.5 eps ||diag(A) u||`` where that is larger: the residual that storing ``u`` in the
@@ -371,8 +371,9 @@ def _jax_solve(points, displacement, free, *, cells, pattern: RowPattern | None,
     rhs = _masked(mass * displacement, free)
     options: dict[str, Any] = {"inverse_diagonal": jax.lax.stop_gradient(operator.inverse_diagonal()), "y0": jax.lax.stop_gradient(_masked(displacement, free))}
     if rows is not None and hierarchy is not None:  # a host pattern comes with its hierarchy
-        # Jacobi where it is bound to finish soon (a V-cycle would cost more than it saves).
-        jacobi_within = (tolerance, min(JACOBI_ITERATIONS, 3 * max_iterations // 4))
+        # Jacobi where it is bound to finish soon (a V-cycle would cost more than it saves); a
+        # mesh without coarsening steps is small enough to be solved directly, always.
+        jacobi_within = (tolerance, min(JACOBI_ITERATIONS, 3 * max_iterations // 4)) if hierarchy else None
         options["preconditioner"] = MultilevelPreconditioner.for_helmholtz(rows, mass, length_scale_squared, free, hierarchy, jacobi_within=jacobi_within)
     solver = JacobiPCG(tolerance, max_iterations, _NAME)
     structure = jax.ShapeDtypeStruct(points.shape, points.dtype)
