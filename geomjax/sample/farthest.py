@@ -12,7 +12,7 @@ from jaxtyping import Array, Float, Int
 
 from .._errors import raises_documented_errors
 from .._points import add_batch_axis, remove_batch_axis
-from .._validate import check_coordinates, check_integer
+from .._validate import FLOAT_DTYPES, check_coordinates, check_integer, is_array
 
 __all__ = ["farthest_point_sampling"]
 
@@ -29,8 +29,9 @@ def farthest_point_sampling(points: Float[Array, "*batch num_points num_dims"], 
     batch). O(N K) work in a ``lax.fori_loop`` keeping one running distance per point.
 
     Args:
-        points: ``(N, D)`` or batched ``(B, N, D)``, float32 or float64, finite (NaN
-            coordinates give an unspecified order).
+        points: ``(N, D)`` or batched ``(B, N, D)`` of any real floating dtype, finite (NaN
+            coordinates give an unspecified order). float16, bfloat16 and float8 points are
+            compared in float32 (as the reference does), float32 and float64 in their own dtype.
         num_samples: integer ``K`` with ``0 <= K <= N``.
         start_index: integer in ``[0, N)`` (when ``K > 0``), the first sample of every batch.
 
@@ -38,7 +39,7 @@ def farthest_point_sampling(points: Float[Array, "*batch num_points num_dims"], 
         ``(K,)`` or ``(B, K)`` int32 indices into the point axis.
 
     Raises:
-        TypeError: non-float points, a non-integer (or bool) ``num_samples`` or ``start_index``.
+        TypeError: non-floating points, a non-integer (or bool) ``num_samples`` or ``start_index``.
         ValueError: points not ``(N, D)`` / ``(B, N, D)``, ``K`` negative or above ``N``, a
             ``start_index`` outside ``[0, N)``.
 
@@ -52,6 +53,10 @@ def farthest_point_sampling(points: Float[Array, "*batch num_points num_dims"], 
         >>> print(np.asarray(farthest_point_sampling(points, 3)))
         [0 3 2]
     """
+    if is_array(points) and jnp.issubdtype(points.dtype, jnp.floating) and jnp.dtype(points.dtype) not in FLOAT_DTYPES:
+        # float16, bfloat16, float8: distances in float32, as the reference computes them (every
+        # narrower float is a float32 exactly, so the order is the one of the input's values).
+        points = jnp.asarray(points).astype(jnp.float32)
     points, batched = check_coordinates("points", points)
     num_samples = check_integer("num_samples", num_samples, minimum=0)
     if isinstance(start_index, (bool, np.bool_)) or not isinstance(start_index, numbers.Integral):

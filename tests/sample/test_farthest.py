@@ -84,3 +84,11 @@ def test_errors():
         farthest_point_sampling(points, 2, start_index=5)
     with pytest.raises(TypeError, match="start_index"):
         farthest_point_sampling(points, 2, start_index=1.0)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_low_precision_points_are_compared_in_float32(dtype):
+    # As the reference: any floating dtype, distances in float32 (exact for these inputs).
+    points = jnp.asarray(np.random.default_rng(4).normal(size=(60, 3)), dtype)
+    out = farthest_point_sampling(points, 12, start_index=5)
+    np.testing.assert_array_equal(out, _reference(np.asarray(points.astype(jnp.float32)), 12, 5))

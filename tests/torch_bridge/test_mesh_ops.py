@@ -278,6 +278,18 @@ def test_farthest_point_sampling_equals_geomjax():
     assert indices[0] == 2 and len(set(indices.tolist())) == count
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_farthest_point_sampling_accepts_low_precision_points(dtype):
+    # Any floating dtype, compared in float32 (the reference's contract): the greedy order of the
+    # same values in float32, by an explicit NumPy loop.
+    from ..sample.test_farthest import _reference
+
+    points = torch.tensor(np.random.default_rng(4).normal(size=(60, 3))).to(dtype)
+    indices = torch_bridge.farthest_point_sampling(points, 12)
+    assert indices.dtype == torch.int64
+    np.testing.assert_array_equal(indices.numpy(), _reference(points.float().numpy(), 12, 0))
+
+
 def test_remeshing_accepts_low_precision_density():
     # Any real floating dtype (the reference's contract), read exactly: as the same values in float32.
     density = 0.5 + REMESH["mesh_vertices"][:, 0].abs()
