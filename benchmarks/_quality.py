@@ -141,17 +141,49 @@ def surface_distances(points, vertices, faces) -> np.ndarray:
     import jax
     import jax.numpy as jnp
 
-    from geomjax._geometry import closest_point_on_triangle
     from geomjax.query.bvh import build_bvh, closest_faces
 
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces).reshape(-1, 3).astype(np.int32)
+    p = np.asarray(points, np.float64).reshape(-1, 3)
     with jax.enable_x64(True):
-        v = jnp.asarray(np.asarray(vertices, np.float64))
-        f = jnp.asarray(np.asarray(faces).reshape(-1, 3).astype(np.int32))
-        p = jnp.asarray(np.asarray(points, np.float64).reshape(-1, 3))
-        face = closest_faces(build_bvh(v, f), p)
-        corners = v[f[face]]
-        closest, _ = closest_point_on_triangle(p, corners[:, 0], corners[:, 1], corners[:, 2])
-        return np.linalg.norm(np.asarray(closest) - np.asarray(p), axis=1)
+        face = np.asarray(closest_faces(build_bvh(jnp.asarray(v), jnp.asarray(f)), jnp.asarray(p)))
+    # The closest point itself in NumPy: one vectorised pass, where eager JAX compiled a dozen
+    # one-operation programs for every new number of points.
+    corners = v[f[face]]
+    closest = _closest_points_on_triangles(p, corners[:, 0], corners[:, 1], corners[:, 2])
+    return np.linalg.norm(closest - p, axis=1)
+
+
+def _closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The point of each triangle ``(a, b, c)`` closest to ``p`` (rows), by its Voronoi regions:
+    the three vertices, the three edges, else the interior (Ericson, Real-Time Collision
+    Detection, 5.1.5), for well-scaled float64 input."""
+
+    def dot(x, y):
+        return np.einsum("ij,ij->i", x, y)
+
+    ab, ac, bc = b - a, c - a, c - b
+    d1, d2 = dot(ab, p - a), dot(ac, p - a)
+    d3, d4 = dot(ab, p - b), dot(ac, p - b)
+    d5, d6 = dot(ab, p - c), dot(ac, p - c)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):  # the quotients of other regions are unused
+        on_ab = a + ab * (d1 / (d1 - d3))[:, None]
+        on_ac = a + ac * (d2 / (d2 - d6))[:, None]
+        on_bc = b + bc * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None]
+        total = va + vb + vc
+        inside = a + ab * (vb / total)[:, None] + ac * (vc / total)[:, None]
+    regions = [
+        (d1 <= 0) & (d2 <= 0),
+        (d3 >= 0) & (d4 <= d3),
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+        (d6 >= 0) & (d5 <= d6),
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+        (va <= 0) & (d4 >= d3) & (d5 >= d6),
+    ]
+    choices = [a, b, on_ab, c, on_ac, on_bc]
+    return np.select([r[:, None] for r in regions], choices, default=inside)
 
 
 def hausdorff_distance(vertices_a, faces_a, vertices_b, faces_b, *, num_probes: int = 100_000, seed: int = 0) -> float:

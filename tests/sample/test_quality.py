@@ -80,3 +80,25 @@ def test_grid_helpers():
     cells = np.floor(points[order] / 0.25)
     keys = cells[:, 2] * 16 + cells[:, 1] * 4 + cells[:, 0]
     assert np.all(np.diff(keys) >= 0) and sorted(order.tolist()) == list(range(100))
+
+
+def test_closest_points_on_triangles_beat_a_dense_sample_of_each_triangle():
+    # Points in every Voronoi region (vertices, edges, interior) of random, some obtuse, triangles.
+    rng = np.random.default_rng(3)
+    a, b, c = (rng.normal(size=(400, 3)) for _ in range(3))
+    p = rng.normal(scale=2.0, size=(400, 3))
+    closest = quality._closest_points_on_triangles(p, a, b, c)
+    # On the triangle: barycentric coordinates (least squares) nonnegative and summing to one.
+    edges = np.stack([b - a, c - a], axis=-1)  # (T, 3, 2)
+    uv = np.stack([np.linalg.lstsq(e, x, rcond=None)[0] for e, x in zip(edges, closest - a)])
+    assert uv.min() > -1e-9 and uv.sum(axis=1).max() < 1 + 1e-9
+    np.testing.assert_allclose(np.einsum("tij,tj->ti", edges, uv) + a, closest, atol=1e-9)
+    # No point of a dense barycentric sample (including the edges and vertices) is closer.
+    s, t = np.meshgrid(np.linspace(0, 1, 41), np.linspace(0, 1, 41))
+    keep = s + t <= 1
+    s, t = s[keep], t[keep]
+    samples = a[:, None] + s[None, :, None] * (b - a)[:, None] + t[None, :, None] * (c - a)[:, None]
+    sampled = np.linalg.norm(samples - p[:, None], axis=-1).min(axis=1)
+    exact = np.linalg.norm(closest - p, axis=1)
+    assert np.all(exact <= sampled + 1e-12)
+    assert np.all(sampled - exact < 0.05 * np.linalg.norm(b - a, axis=1) + 0.05 * np.linalg.norm(c - a, axis=1))
