@@ -308,6 +308,14 @@ def check_host_surface(op_name: str, mesh_vertices, mesh_indices, *, min_vertice
     return vertices, faces
 
 
+def widened_to_float32(x):
+    """A float16, bfloat16 or float8 array as float32 (exact: every narrower float is a float32);
+    anything else unchanged, for the usual checks to accept or reject."""
+    if is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and jnp.dtype(x.dtype) not in FLOAT_DTYPES:
+        return jnp.asarray(x).astype(jnp.float32)
+    return x
+
+
 def check_host_vertex_field(op_name: str, name: str, value, vertices: jax.Array) -> np.ndarray | None:
     """``None`` stays ``None``; otherwise a finite, positive ``(V,)`` field as a float64 host array.
 
@@ -316,9 +324,7 @@ def check_host_vertex_field(op_name: str, name: str, value, vertices: jax.Array)
     """
     if value is None:
         return None
-    if is_array(value) and jnp.issubdtype(value.dtype, jnp.floating) and jnp.dtype(value.dtype) not in FLOAT_DTYPES:
-        value = jnp.asarray(value).astype(jnp.float32)  # exact: every narrower float is a float32
-    field = as_float_array(name, value)
+    field = as_float_array(name, widened_to_float32(value))
     if isinstance(field, jax.core.Tracer):
         raise TypeError(f"{op_name} runs eagerly: {name} must be concrete")
     check_same_device("mesh_vertices", vertices, name, field)

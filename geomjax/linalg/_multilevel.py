@@ -173,6 +173,12 @@ def _coarse_pattern(neighbours: np.ndarray, aggregate: np.ndarray, count: int) -
 # Numeric part: per solve, in JAX.
 
 
+def _row_norms(mass, couplings):
+    """``(A_ii, sum_j |A_ij|)`` of the rows ``mass_i x_i + sum_k c_ik (x[n_ik] - x_i)``."""
+    diagonal = mass - jnp.sum(couplings, axis=1)
+    return diagonal, jnp.abs(diagonal) + jnp.sum(jnp.abs(couplings), axis=1)
+
+
 def jacobi_iteration_bound(mass, couplings, smallest_eigenvalue, tolerance) -> Float[Array, ""]:
     """CG's iteration bound ``sqrt(kappa) / 2 * ln(2 / tolerance)`` for the Jacobi-preconditioned
     operator in padded rows, with ``kappa`` bounded from the rows alone:
@@ -180,8 +186,7 @@ def jacobi_iteration_bound(mass, couplings, smallest_eigenvalue, tolerance) -> F
     ``lambda_min(D^-1 A) >= smallest_eigenvalue(A) / max_i A_ii``. Worst-row bounds: one sliver
     raises it, so it errs towards the V-cycle, never towards a Jacobi solve that cannot finish.
     On a uniform sphere it is close to the count (70 bounded, 66 needed, ``icosphere(6)``)."""
-    diagonal = mass - jnp.sum(couplings, axis=1)
-    l1 = jnp.abs(diagonal) + jnp.sum(jnp.abs(couplings), axis=1)
+    diagonal, l1 = _row_norms(mass, couplings)
     tiny = jnp.finfo(diagonal.dtype).tiny
     condition = jnp.max(l1 / jnp.maximum(diagonal, tiny)) * jnp.max(diagonal) / jnp.maximum(smallest_eigenvalue, tiny)
     return 0.5 * jnp.sqrt(condition) * jnp.log(2 / tolerance)
@@ -214,14 +219,14 @@ class _Level(eqx.Module):
     mass: Float[Array, " n"]
     couplings: Float[Array, "n W"]
     neighbours: Int[Array, "n W"]
+    diagonal: Float[Array, " n"]
     inverse_smoother: Float[Array, " n"]
 
     @classmethod
     def build(cls, mass, couplings, neighbours):
-        diagonal = mass - jnp.sum(couplings, axis=1)
-        l1 = jnp.abs(diagonal) + jnp.sum(jnp.abs(couplings), axis=1)
+        diagonal, l1 = _row_norms(mass, couplings)
         smoother = jnp.maximum(diagonal, SMOOTHER_L1_FRACTION * l1)
-        return cls(mass, couplings, neighbours, 1 / jnp.maximum(smoother, jnp.finfo(l1.dtype).tiny))
+        return cls(mass, couplings, neighbours, diagonal, 1 / jnp.maximum(smoother, jnp.finfo(l1.dtype).tiny))
 
     def coarsen(self, step: Coarsening) -> _Level:
         count, width = step.neighbours.shape
@@ -233,7 +238,7 @@ class _Level(eqx.Module):
         n = self.mass.shape[0]
         rows = jnp.broadcast_to(jnp.arange(n)[:, None], self.neighbours.shape)
         matrix = jnp.zeros((n, n), self.mass.dtype).at[rows, self.neighbours].add(self.couplings)
-        return matrix + jnp.diag(self.mass - jnp.sum(self.couplings, axis=1))
+        return matrix + jnp.diag(self.diagonal)
 
 
 class MultilevelPreconditioner(eqx.Module):
@@ -306,9 +311,8 @@ class MultilevelPreconditioner(eqx.Module):
     def __call__(self, r: Float[Array, "N D"]) -> Float[Array, "N D"]:
         if self.jacobi_instead is None:
             return self._cycle(0, r)
-        finest = self.levels[0]
-        diagonal = finest.mass - jnp.sum(finest.couplings, axis=1)
-        return jax.lax.cond(self.jacobi_instead, lambda r: r / diagonal[:, None], lambda r: self._cycle(0, r), r)
+        diagonal = self.levels[0].diagonal[:, None]
+        return jax.lax.cond(self.jacobi_instead, lambda r: r / diagonal, lambda r: self._cycle(0, r), r)
 
     def _cycle(self, depth: int, b):
         """One smoothing step from zero, the coarse correction, one more smoothing step."""

@@ -12,7 +12,7 @@ from jaxtyping import Array, Float, Int
 
 from .._errors import raises_documented_errors
 from .._points import add_batch_axis, remove_batch_axis
-from .._validate import FLOAT_DTYPES, check_coordinates, check_integer, is_array
+from .._validate import check_coordinates, check_integer, widened_to_float32
 
 __all__ = ["farthest_point_sampling"]
 
@@ -53,11 +53,9 @@ def farthest_point_sampling(points: Float[Array, "*batch num_points num_dims"], 
         >>> print(np.asarray(farthest_point_sampling(points, 3)))
         [0 3 2]
     """
-    if is_array(points) and jnp.issubdtype(points.dtype, jnp.floating) and jnp.dtype(points.dtype) not in FLOAT_DTYPES:
-        # float16, bfloat16, float8: distances in float32, as the reference computes them (every
-        # narrower float is a float32 exactly, so the order is the one of the input's values).
-        points = jnp.asarray(points).astype(jnp.float32)
-    points, batched = check_coordinates("points", points)
+    # float16, bfloat16, float8: distances in float32, as the reference computes them (the
+    # conversion is exact, so the order is the one of the input's values).
+    points, batched = check_coordinates("points", widened_to_float32(points))
     num_samples = check_integer("num_samples", num_samples, minimum=0)
     if isinstance(start_index, (bool, np.bool_)) or not isinstance(start_index, numbers.Integral):
         raise TypeError(f"start_index must be an integer, got {type(start_index).__name__}")
