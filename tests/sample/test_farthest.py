@@ -89,6 +89,9 @@ def test_errors():
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
 def test_low_precision_points_are_compared_in_float32(dtype):
     # As the reference: any floating dtype, distances in float32 (exact for these inputs).
-    points = jnp.asarray(np.random.default_rng(4).normal(size=(60, 3)), dtype)
-    out = farthest_point_sampling(points, 12, start_index=5)
-    np.testing.assert_array_equal(out, _reference(np.asarray(points.astype(jnp.float32)), 12, 5))
+    from tests.op_cases import CASES
+
+    fps = CASES["farthest_point_sampling"](jnp.float32)  # the case table's points and count
+    points, count = fps.arrays[0].astype(dtype), fps.fixed["num_samples"]
+    out = farthest_point_sampling(points, count, start_index=5)
+    np.testing.assert_array_equal(out, _reference(np.asarray(points.astype(jnp.float32)), count, 5))

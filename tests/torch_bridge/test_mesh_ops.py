@@ -284,10 +284,11 @@ def test_farthest_point_sampling_accepts_low_precision_points(dtype):
     # same values in float32, by an explicit NumPy loop.
     from ..sample.test_farthest import _reference
 
-    points = torch.tensor(np.random.default_rng(4).normal(size=(60, 3))).to(dtype)
-    indices = torch_bridge.farthest_point_sampling(points, 12)
+    fps = torch_inputs("farthest_point_sampling", torch.float32)  # the case table's points and count
+    points, count = fps["points"].to(dtype), fps["num_samples"]
+    indices = torch_bridge.farthest_point_sampling(points, count)
     assert indices.dtype == torch.int64
-    np.testing.assert_array_equal(indices.numpy(), _reference(points.float().numpy(), 12, 0))
+    np.testing.assert_array_equal(indices.numpy(), _reference(points.float().numpy(), count, 0))
 
 
 def test_remeshing_accepts_low_precision_density():
