@@ -27,6 +27,8 @@ the real kernel raises geomjax's exception — with its original type — when t
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -73,6 +75,34 @@ def _unflatten(leaves, slots, kinds) -> tuple:
 
 def _is_float_dtype(dtype) -> bool:
     return jax.numpy.issubdtype(dtype, jax.numpy.inexact)
+
+
+# ---------------------------------------------------------------------------------------------
+# host-prepared arguments: what a function builds from its concrete tensors before tracing
+# ---------------------------------------------------------------------------------------------
+
+_PREPARED: contextvars.ContextVar = contextvars.ContextVar("torch_bridge_prepared", default=None)
+
+
+def prepared():
+    """While a lifted function is traced: what its ``prepare`` built on the host from the call's
+    concrete tensors (JAX arrays, traced like the slots), or ``None`` (no ``prepare``, or traced
+    for shapes only)."""
+    return _PREPARED.get()
+
+
+@contextlib.contextmanager
+def _providing(value):
+    token = _PREPARED.set(value)
+    try:
+        yield
+    finally:
+        _PREPARED.reset(token)
+
+
+def _with_prepared(value, function, *args):
+    with _providing(value):
+        return function(*args)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -396,7 +426,7 @@ class LiftedFunction:
     ``ValueError`` is raised in compiled graphs too) and returns the outputs.
     """
 
-    def __init__(self, name, fn, slots, statics, num_outputs, *, nondifferentiable=(), eager_vjp_levels=0, dynamic_outputs=None):
+    def __init__(self, name, fn, slots, statics, num_outputs, *, nondifferentiable=(), eager_vjp_levels=0, dynamic_outputs=None, prepare=None):
         self.name = name
         self.fn = fn
         self.slot_names = tuple(n for n, _ in slots)
@@ -411,16 +441,21 @@ class LiftedFunction:
         self._shape_cache = {}
         self._vjp = self._jvp = self._batched = None
         self.dynamic_outputs = dynamic_outputs
+        self.prepare = prepare
 
-        self._forward_jit = jax.jit(lambda slots, statics, wrt: _forward_with_residuals(fn, self.kinds, slots, statics, wrt), static_argnums=(1, 2))
+        # Every program takes what ``prepare`` built as an argument (a pytree of arrays, or None),
+        # and ``fn`` reads it through prepared() while it is traced.
+        self._forward_jit = jax.jit(
+            lambda slots, statics, wrt, extra: _with_prepared(extra, _forward_with_residuals, fn, self.kinds, slots, statics, wrt), static_argnums=(1, 2)
+        )
         self._pullback_jit = jax.jit(
-            lambda slots, outputs, residuals, cotangents, statics, present, wrt: _apply_saved_pullback(
-                fn, self.kinds, slots, outputs, residuals, cotangents, statics, present, wrt
+            lambda slots, outputs, residuals, cotangents, statics, present, wrt, extra: _with_prepared(
+                extra, _apply_saved_pullback, fn, self.kinds, slots, outputs, residuals, cotangents, statics, present, wrt
             ),
             static_argnums=(4, 5, 6),
         )
         if dynamic_outputs is not None:
-            self._forward_jit = lambda slots, statics, wrt: (_distinct_outputs(tuple(fn(slots, statics)), slots), ())
+            self._forward_jit = lambda slots, statics, wrt, extra: (_distinct_outputs(tuple(_with_prepared(extra, fn, slots, statics)), slots), ())
 
         arguments = [f"{kind} {n}" for n, kind in slots] + [f"{t} {n}" for n, t in statics] + ["bool[] requires_grad"]
         if num_outputs is None:
@@ -502,6 +537,10 @@ class LiftedFunction:
         arrays = [None if x is None else to_jax(x, jit_argument=jitted) for x in leaves]
         return _unflatten(arrays, slots, self.kinds) if self._has_lists else tuple(arrays)
 
+    def _prepared(self, slots, statics):
+        """``prepare``'s result for these concrete tensors (``None`` without a ``prepare``)."""
+        return None if self.prepare is None else self.prepare(slots, statics)
+
     def _device_of(self, leaves) -> torch.device:
         return next(x.device for x in leaves if x is not None)
 
@@ -513,7 +552,7 @@ class LiftedFunction:
         # documented exception type with its message, as the eager geomjax call does.
         with documented_errors():
             with x64_for(leaves):
-                outputs, residuals = self._forward_jit(self._as_arrays(slots, leaves), statics, wrt)
+                outputs, residuals = self._forward_jit(self._as_arrays(slots, leaves), statics, wrt, self._prepared(slots, statics))
             return [to_torch(o, device) for o in outputs], [to_torch(r, device) for r in residuals] if keep_residuals else []
 
     def _run_pullback(self, slots, leaves, outputs, residuals, cotangents, statics, present, wrt):
@@ -528,6 +567,7 @@ class LiftedFunction:
                     statics,
                     present,
                     wrt,
+                    self._prepared(slots, statics),
                 )
             return [to_torch(g, device) for g in grads]
 
@@ -682,14 +722,23 @@ class LiftedFunction:
 
     def _derived(self, suffix: str, fn, extra_slots, extra_statics, num_outputs, **options) -> LiftedFunction:
         """A function derived from this one (its VJP, JVP or vmap), lifted the same way. The extra
-        slots and (``bool[]``) statics are numbered by nesting depth, so nested levels stay distinct."""
+        slots and (``bool[]``) statics are numbered by nesting depth, so nested levels stay distinct.
+        It prepares what this one does, from this one's slots and statics (its own come first)."""
         depth = self.name.count(suffix) + 1
+        prepare = None
+        if self.prepare is not None:
+            base_prepare, num_slots, num_statics = self.prepare, self._num_slots, self._num_statics
+
+            def prepare(slots, statics):
+                return base_prepare(slots[:num_slots], statics[:num_statics])
+
         return LiftedFunction(
             f"{self.name}{suffix}",
             fn,
             [*zip(self.slot_names, self.kinds), *((f"{name}_{depth}", kind) for name, kind in extra_slots)],
             [*zip(self.static_names, self.static_types), *((f"{name}_{depth}", "bool[]") for name in extra_statics)],
             num_outputs,
+            prepare=prepare,
             **options,
         )
 

@@ -20,8 +20,21 @@ import torch
 
 import geomjax
 from geomjax._registry import REGISTRY
+from geomjax.deform.sobolev import deform_with_topology, helmholtz_topology
 
 from ._signature import BridgedOp
+
+
+def _sobolev_topology(arguments):
+    """The mesh topology geomjax builds from concrete cells (padded rows and the multilevel
+    preconditioner's coarsening, cached per topology), from the call's cells tensor."""
+    cells, points = arguments["cells"], arguments["points"]
+    if not (isinstance(cells, torch.Tensor) and isinstance(points, torch.Tensor)) or points.ndim < 2:
+        return None
+    if cells.is_floating_point() or cells.is_complex() or cells.dtype == torch.bool:
+        return None  # geomjax rejects these cells (TypeError)
+    return helmholtz_topology(cells.detach().cpu().numpy(), points.shape[-2])
+
 
 _TORCH_FORMS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # The lattice box is configuration, not a design variable (reference: ValueError).
@@ -38,6 +51,9 @@ _TORCH_FORMS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "annotations": {"hash_grid_resolution": "int | Sequence[int]"},
         "dynamic_outputs": lambda arguments: [((3,), torch.float32)],
     },
+    # The bridge's programs take cells traced; the topology geomjax builds from concrete cells
+    # (for the multilevel preconditioner real meshes need) is built from the tensor and passed in.
+    "sobolev_deform_points": {"function": deform_with_topology, "prepared": {"topology": _sobolev_topology}},
     "remeshing": {
         "dynamic_outputs": lambda arguments: [
             ((3,), arguments["mesh_vertices"].dtype),

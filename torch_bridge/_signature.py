@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ._dlpack import numpy_dtype, x64_for
-from ._lift import NAMESPACE, OPTIONAL_TENSOR, TENSOR, LiftedFunction
+from ._lift import NAMESPACE, OPTIONAL_TENSOR, TENSOR, LiftedFunction, prepared
 
 _REQUIRED = object()
 _BAD = object()
@@ -252,6 +252,10 @@ class BridgedOp:
         index_outputs: positions of the integer outputs that the reference returns as int64
             whatever the index dtype of the inputs (face ids, triangles, sample indices); geomjax
             returns int32 unless JAX runs in 64-bit mode.
+        prepared: keyword arguments of ``function`` that are built on the host from the call's
+            concrete tensors, ``{keyword: build(arguments by name) -> JAX arrays or None}``
+            (a mesh's topology, which geomjax builds itself only from concrete arrays, while the
+            bridge's programs take every tensor traced); see :func:`torch_bridge._lift.prepared`.
     """
 
     def __init__(
@@ -266,9 +270,11 @@ class BridgedOp:
         nondifferentiable: Sequence[str] = (),
         dynamic_outputs: Callable[[dict], list] | None = None,
         index_outputs: Sequence[int] = (),
+        prepared: Mapping[str, Callable[[dict], Any]] = MappingProxyType({}),
     ):
         self.function: Callable
         self.index_outputs = frozenset(index_outputs)
+        self.prepared = dict(prepared)
         if isinstance(signature, str):
             declared = _parse_signature(signature)
             if function is None:
@@ -335,7 +341,12 @@ class BridgedOp:
             # first and second derivatives, under torch.compile too
             eager_vjp_levels=0 if dynamic_outputs is not None else 2,
             dynamic_outputs=None if dynamic_outputs is None else lambda slots, statics: dynamic_outputs(self._geomjax_kwargs(slots, statics)),
+            prepare=self._prepare if self.prepared else None,
         )
+
+    def _prepare(self, slots, statics) -> dict:
+        arguments = self._geomjax_kwargs(slots, statics)
+        return {keyword: build(arguments) for keyword, build in self.prepared.items()}
 
     def _geomjax_kwargs(self, slots, statics) -> dict:
         kwargs = {}
@@ -351,7 +362,11 @@ class BridgedOp:
         return kwargs
 
     def _call_geomjax(self, slots, statics):
-        result = self.function(**self._geomjax_kwargs(slots, statics))
+        kwargs = self._geomjax_kwargs(slots, statics)
+        if self.prepared:
+            built = prepared() or {}  # nothing when traced for output shapes only
+            kwargs.update({keyword: built.get(keyword) for keyword in self.prepared})
+        result = self.function(**kwargs)
         return (result,) if self.single_output else tuple(result)
 
     def bind(self, values):

@@ -99,8 +99,10 @@ def sobolev_deform_points(
     solved directly), which needs 3-7x fewer iterations than Jacobi on fine or badly shaped meshes
     and is exact on meshes of at most 150 vertices. On larger meshes the JAX path keeps Jacobi
     where an a-priori bound says Jacobi-CG finishes within 96 iterations (a V-cycle costs about
-    four Jacobi iterations on a CPU); the Warp path always cycles. With traced ``cells`` (an argument of
-    ``jit``) it is Jacobi. The solve starts from the masked ``d`` and runs until the true residual
+    four Jacobi iterations on a CPU); the Warp path always cycles. With traced ``cells`` (an
+    argument of ``jit``) it is Jacobi: close over the cells instead (a constant of the program)
+    to keep the V-cycle. (torch_bridge builds the topology from its concrete tensors, so its
+    calls, eager or compiled, get the V-cycle.) The solve starts from the masked ``d`` and runs until the true residual
     satisfies ``||b - A u|| <= tolerance * ||b||`` over the whole field, or reaches the rounding
     floor ``0.5 eps ||diag(A) u||`` where that is larger: the residual that storing ``u`` in the
     dtype alone leaves (no iterate does better). Only float32 on stiff systems meets it (fine or
@@ -168,6 +170,35 @@ def sobolev_deform_points(
         >>> print(np.round(np.asarray(moved[:, 1]), 4))
         [0.0301 0.0552 0.1263 0.0527 0.023  0.0126]
     """
+    return deform_with_topology(
+        points, cells, displacement, length_scale=length_scale, fixed_points=fixed_points, max_iterations=max_iterations,
+        tolerance=tolerance, implementation=implementation,
+    )  # fmt: skip
+
+
+HelmholtzTopology = tuple[RowPattern, tuple[Coarsening, ...]]
+
+
+def helmholtz_topology(cells: np.ndarray, num_points: int) -> HelmholtzTopology | None:
+    """The host-side structures of concrete ``cells`` (``(C, V)`` integers in ``[0, num_points)``):
+    the padded rows of the JAX path's products and the multilevel preconditioner's coarsening,
+    built once per topology (cached on its contents). ``None`` for cells that are not such an
+    array (the call then rejects them), for no cells, and where the rows would be too wide to pad
+    (the per-cell product and Jacobi serve those)."""
+    cells = np.asarray(cells)
+    if cells.ndim != 2 or cells.shape[0] == 0 or not np.issubdtype(cells.dtype, np.integer):
+        return None
+    if cells.min() < 0 or cells.max() >= num_points:
+        return None
+    pattern = row_pattern(cells, num_points)
+    return None if pattern is None else (pattern, aggregation_hierarchy(pattern))
+
+
+def deform_with_topology(points, cells, displacement, *, length_scale, fixed_points, max_iterations, tolerance, implementation,
+                         topology: HelmholtzTopology | None = None):  # fmt: skip
+    """:func:`sobolev_deform_points` with, for traced ``cells``, their :func:`helmholtz_topology`
+    built by the caller from the same cells on the host (torch_bridge does, as its programs
+    take every tensor traced); ignored when ``cells`` are concrete (built here, cached)."""
     points, batched = check_coordinates("points", points)
     displacement = check_same_shape("points", points, "displacement", displacement)
     cells = _check_cells(cells, points)
@@ -198,17 +229,13 @@ def sobolev_deform_points(
 
     num_points = x.shape[1]
     concrete_cells = not isinstance(cells, jax.core.Tracer)
-    pattern = None
     if concrete_cells:
         host_cells = np.asarray(cells)
         check_host_index_range(host_cells, num_points, _index_range_message(num_points))
         if x.size and cells.shape[0] and not isinstance(x, jax.core.Tracer):
             _check_nondegenerate(x, cells)
-        if cells.shape[0]:
-            # Padded rows and their coarsening, once per topology: the JAX path's products and
-            # both paths' multilevel preconditioner.
-            pattern = row_pattern(host_cells, num_points)
-    hierarchy = None if pattern is None else aggregation_hierarchy(pattern)
+        topology = helmholtz_topology(host_cells, num_points)
+    pattern, hierarchy = (None, None) if topology is None else topology
     deform = functools.partial(
         _deform,
         pattern=pattern,

@@ -14,7 +14,7 @@ from geomjax import sobolev_deform_points
 from geomjax.linalg import MultilevelPreconditioner, RowStiffness, aggregation_hierarchy, row_pattern, simplex_stiffness, uniform_lumped_mass
 from geomjax.linalg._multilevel import jacobi_iteration_bound
 
-from .meshes import MESHES, dense_stiffness
+from .meshes import MESHES, dense_sobolev, dense_stiffness
 
 LENGTH = 0.3
 
@@ -101,6 +101,33 @@ def test_the_jacobi_iteration_bound_bounds_the_condition_number():
     values = np.linalg.eigvals(matrix / np.diag(matrix)[:, None]).real
     exact = 0.5 * np.sqrt(values.max() / values.min()) * np.log(2 / tolerance)
     assert exact <= bound < 10 * exact, (exact, bound)
+
+
+@pytest.mark.parametrize("implementation", ["jax", "warp"])
+def test_torch_bridge_calls_get_the_v_cycle_that_concrete_cells_get(implementation):
+    # torch_bridge's programs take cells traced, where geomjax alone could only use Jacobi; the
+    # bridge builds the topology from the cells tensor and passes it in, eager and compiled.
+    torch = pytest.importorskip("torch")
+    import torch_bridge
+
+    points, cells = MESHES["triangles-fine"]()
+    displacement = 0.1 * np.sin(3 * np.asarray(points)[:, ::-1])
+    options = dict(length_scale=LENGTH, max_iterations=30, implementation=implementation)
+    # Jacobi-PCG needs more than 60 iterations on this system, the V-cycle fewer than 30.
+    with pytest.raises(RuntimeError, match="did not converge within 30 iterations"):
+        jax.block_until_ready(jax.jit(lambda c: sobolev_deform_points(points, c, displacement, **options))(cells))
+    expected = np.asarray(dense_sobolev(points, cells, displacement, LENGTH))
+
+    tracked = torch.tensor(np.asarray(points)).requires_grad_()
+    torch_cells, torch_displacement = torch.tensor(np.asarray(cells)), torch.tensor(displacement)
+    moved = torch_bridge.sobolev_deform_points(tracked, torch_cells, torch_displacement, **options)
+    # The solver's tolerance (1e-10 of the residual) times the system's conditioning (below 1e3).
+    np.testing.assert_allclose(moved.detach().numpy(), expected, rtol=0, atol=1e-7 * np.abs(expected - np.asarray(points)).max())
+    (gradient,) = torch.autograd.grad(moved.square().sum(), tracked)
+    expected_gradient = jax.grad(lambda p: jnp.sum(sobolev_deform_points(p, cells, displacement, **options) ** 2))(points)
+    np.testing.assert_allclose(gradient.numpy(), expected_gradient, rtol=1e-8, atol=1e-12)
+    compiled = torch.compile(lambda p: torch_bridge.sobolev_deform_points(p, torch_cells, torch_displacement, **options), fullgraph=True)
+    torch.testing.assert_close(compiled(tracked.detach()), moved.detach(), rtol=0, atol=0)
 
 
 # ---------------------------------------------------------------------------------------------
