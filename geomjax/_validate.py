@@ -316,6 +316,14 @@ def widened_to_float32(x):
     return x
 
 
+def as_float32(x):
+    """Any real floating array as float32 (float64 rounded, narrower floats exact); anything else
+    unchanged, for the usual checks to accept or reject."""
+    if is_array(x) and jnp.issubdtype(x.dtype, jnp.floating):
+        return jnp.asarray(x).astype(jnp.float32)
+    return x
+
+
 def check_host_vertex_field(op_name: str, name: str, value, vertices: jax.Array) -> np.ndarray | None:
     """``None`` stays ``None``; otherwise a finite, positive ``(V,)`` field as a float64 host array.
 

@@ -445,7 +445,7 @@ def remeshing(dtype):
 
 
 def farthest_point_sampling(dtype):
-    # Not differentiable (integer indices); JAX only, no implementation argument.
+    # Not differentiable (integer indices); JAX only ("warp" is a ValueError, no kernel).
     arrays = _cast(dtype, _query_points(15, -1.0, 1.0))
     return OpCase(
         name="farthest_point_sampling",

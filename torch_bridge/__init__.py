@@ -32,11 +32,12 @@ Example:
             [4.0000, 2.0000]])
 """
 
+from ._farthest import farthest_point_sampling
 from ._ops import MESH_OPS, OPS
 from ._ray import ray_mesh_intersect
 from ._signature import make_public_function
 
-__all__ = [op.name for op in (*OPS, *MESH_OPS)] + ["ray_mesh_intersect"]
+__all__ = [op.name for op in (*OPS, *MESH_OPS)] + ["ray_mesh_intersect", "farthest_point_sampling"]
 globals().update({op.name: make_public_function(op) for op in (*OPS, *MESH_OPS)})
 
 del make_public_function

@@ -45,7 +45,6 @@ _TORCH_FORMS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     "mesh_to_voxel_fraction": {"annotations": {"grid_dims": "Sequence[int]"}},
     # Index outputs are int64, as in the reference (geomjax's are int32 without JAX's x64 mode).
     "signed_distance_field": {"index_outputs": (2,)},
-    "farthest_point_sampling": {"index_outputs": (0,)},
     "mesh_poisson_disk_sample": {
         # an integer tensor is read on the host, as for grid_dims
         "annotations": {"hash_grid_resolution": "int | Sequence[int]"},
@@ -63,8 +62,9 @@ _TORCH_FORMS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     },
 })  # fmt: skip
 
-# ray_mesh_intersect is in _ray.py: its reusable BVH needs a wrapper around its op.
-_WRAPPED_IN_THEIR_OWN_MODULE = frozenset({"ray_mesh_intersect"})
+# ray_mesh_intersect is in _ray.py (its reusable BVH needs a wrapper around its op) and
+# farthest_point_sampling in _farthest.py (its random start is drawn from torch's generator).
+_WRAPPED_IN_THEIR_OWN_MODULE = frozenset({"ray_mesh_intersect", "farthest_point_sampling"})
 
 # Mesh queries, sampling and remeshing: several outputs, integer outputs, or output sizes that
 # depend on the data (those run eagerly and are not differentiable, as in the reference).

@@ -9,10 +9,11 @@ from geomjax import farthest_point_sampling, icosphere
 
 
 def _reference(points, count, start):
-    """Greedy farthest-point order by an explicit loop (ties: lowest index)."""
-    points = np.asarray(points, np.float64)
+    """Greedy farthest-point order by an explicit loop in float32, the reference's arithmetic
+    (ties: lowest index)."""
+    points = np.asarray(points, np.float32)
     chosen = [start]
-    nearest = np.full(points.shape[0], np.inf)
+    nearest = np.full(points.shape[0], np.inf, np.float32)
     for _ in range(1, count):
         nearest = np.minimum(nearest, np.sum((points - points[chosen[-1]]) ** 2, axis=1))
         nearest[chosen] = -1
@@ -95,3 +96,51 @@ def test_low_precision_points_are_compared_in_float32(dtype):
     points, count = fps.arrays[0].astype(dtype), fps.fixed["num_samples"]
     out = farthest_point_sampling(points, count, start_index=5)
     np.testing.assert_array_equal(out, _reference(np.asarray(points.astype(jnp.float32)), count, 5))
+
+
+def test_float64_points_are_compared_in_float32():
+    # 1 + 1e-9 lies farther from 0 than -1 in float64, but both are 1 away in float32: the tie
+    # goes to the lower index, as in the reference.
+    points = jnp.array([[0.0], [-1.0], [1.0 + 1e-9]], jnp.float64)
+    np.testing.assert_array_equal(farthest_point_sampling(points, 2), [0, 1])
+
+
+def test_random_start_draws_one_start_per_cloud_from_the_key():
+    points = jnp.asarray(np.random.default_rng(4).normal(size=(3, 40, 2)), jnp.float32)
+    key = jax.random.key(7)
+    out = np.asarray(farthest_point_sampling(points, 6, random_start=key))
+    np.testing.assert_array_equal(out, [_reference(p, 6, s) for p, s in zip(np.asarray(points), out[:, 0])])
+    assert len(set(out[:, 0].tolist())) > 1  # one draw per cloud (equal starts: 1 in 40 per pair)
+    np.testing.assert_array_equal(farthest_point_sampling(points, 6, random_start=jax.random.PRNGKey(7)), out)  # raw keys too
+    drawn = {int(farthest_point_sampling(points[0], 1, random_start=jax.random.key(seed))[0]) for seed in range(20)}
+    assert len(drawn) > 5  # uniform over 40 indices: 20 draws repeat a few at most
+
+
+def test_start_index_arrays_per_cloud_also_traced():
+    points = jnp.asarray(np.random.default_rng(5).normal(size=(3, 40, 2)), jnp.float32)
+    starts = jnp.array([3, 0, 39])
+    expected = [_reference(p, 6, int(s)) for p, s in zip(np.asarray(points), starts)]
+    np.testing.assert_array_equal(farthest_point_sampling(points, 6, start_index=starts), expected)
+    np.testing.assert_array_equal(jax.jit(lambda p, s: farthest_point_sampling(p, 6, start_index=s))(points, starts), expected)
+    with pytest.raises(ValueError, match=r"start_index must lie in \[0, 40\)"):
+        farthest_point_sampling(points, 6, start_index=jnp.array([3, 0, 40]))
+    with pytest.raises(Exception, match=r"start_index must lie in \[0, 40\)"):  # under the caller's jit: JAX's runtime error
+        jax.block_until_ready(jax.jit(lambda p, s: farthest_point_sampling(p, 6, start_index=s))(points, jnp.array([-1, 0, 0])))
+    with pytest.raises(ValueError, match=r"start_index must be an integer array of shape \(\) or \(B,\)"):
+        farthest_point_sampling(points, 6, start_index=jnp.array([1, 2]))
+
+
+def test_random_start_and_implementation_errors():
+    points = jnp.zeros((5, 3))
+    with pytest.raises(ValueError, match="random_start=True needs a generator"):
+        farthest_point_sampling(points, 2, random_start=True)
+    with pytest.raises(ValueError, match="not both"):
+        farthest_point_sampling(points, 2, random_start=jax.random.key(0), start_index=1)
+    with pytest.raises(TypeError, match="random_start must be a bool or a jax.random key"):
+        farthest_point_sampling(points, 2, random_start=1)
+    with pytest.raises(ValueError, match="implementation='warp' has no kernel"):
+        farthest_point_sampling(points, 2, implementation="warp")
+    with pytest.raises(KeyError, match="unknown implementation 'cuda'"):
+        farthest_point_sampling(points, 2, implementation="cuda")
+    for name in ("jax", "torch", None):
+        np.testing.assert_array_equal(farthest_point_sampling(points, 2, implementation=name), [0, 1])

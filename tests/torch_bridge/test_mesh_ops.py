@@ -53,7 +53,7 @@ def _assert_outputs_equal(ours, theirs, tol):
 
 
 def test_every_mesh_op_is_exported_with_geomjax_signature():
-    names = [op.name for op in MESH_OPS] + ["ray_mesh_intersect"]
+    names = [op.name for op in MESH_OPS] + ["ray_mesh_intersect", "farthest_point_sampling"]
     assert set(names) <= set(torch_bridge.__all__)
     for name in names:
         ours = inspect.signature(getattr(torch_bridge, name)).parameters
@@ -276,6 +276,30 @@ def test_farthest_point_sampling_equals_geomjax():
     expected = geomjax.farthest_point_sampling(_jax(fps["points"]), count, start_index=2)
     np.testing.assert_array_equal(indices.numpy(), np.asarray(expected))
     assert indices[0] == 2 and len(set(indices.tolist())) == count
+
+
+def test_farthest_point_sampling_random_start_uses_torch_global_generator():
+    from ..sample.test_farthest import _reference
+
+    fps = torch_inputs("farthest_point_sampling", torch.float32)
+    points, count = torch.stack([fps["points"], fps["points"].flip(0)]), fps["num_samples"]
+    torch.manual_seed(11)
+    starts = torch.randint(points.shape[1], (2,))  # what the reference draws: one start per cloud
+    torch.manual_seed(11)
+    indices = torch_bridge.farthest_point_sampling(points, count, random_start=True)
+    assert indices.dtype == torch.int64
+    np.testing.assert_array_equal(indices.numpy(), [_reference(p, count, int(s)) for p, s in zip(points.numpy(), starts)])
+    torch.manual_seed(11)
+    compiled = torch.compile(lambda p: torch_bridge.farthest_point_sampling(p, count, True), fullgraph=True)(points)
+    assert compiled.shape == (2, count) and bool(((compiled >= 0) & (compiled < points.shape[1])).all())
+    with pytest.raises(ValueError, match="not both"):
+        torch_bridge.farthest_point_sampling(points, count, random_start=True, start_index=1)
+    with pytest.raises(TypeError, match="random_start must be a bool"):
+        torch_bridge.farthest_point_sampling(points, count, random_start=torch.tensor(1))
+    with pytest.raises(ValueError, match="implementation='warp' has no kernel"):
+        torch_bridge.farthest_point_sampling(points, count, implementation="warp")
+    with pytest.raises(KeyError, match="unknown implementation 'cuda'"):
+        torch_bridge.farthest_point_sampling(points, count, implementation="cuda")
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
