@@ -27,7 +27,16 @@ from jaxtyping import Array, Float, Int, UInt32
 from .._blocking import map_query_blocks, query_block_size
 from .._errors import checked_pure_callback, raises_documented_errors
 from .._geometry import closest_point_on_triangle
-from .._validate import as_float_array, as_index_array, check_bool, check_index_range, check_real_scalar, check_same_device, check_same_dtype
+from .._validate import (
+    as_float_array,
+    as_index_array,
+    check_bool,
+    check_index_range,
+    check_real_scalar,
+    check_same_device,
+    check_same_dtype,
+    widened_to_float32,
+)
 
 __all__ = [
     "MeshBVH",
@@ -37,6 +46,7 @@ __all__ = [
     "checked_mesh",
     "checked_query_points",
     "consistently_oriented_faces",
+    "queries_in_working_dtype",
     "replayed",
     "sliver_faces",
 ]
@@ -425,15 +435,30 @@ def _relative_flips(faces: np.ndarray) -> np.ndarray | None:
 # Input checks shared by the mesh queries.
 
 
-def checked_query_points(name: str, points, vertices: jax.Array, *, op_name: str | None = None, vertices_name: str = "mesh_vertices") -> jax.Array:
-    """Query points ``(..., 3)`` of a mesh query, with the dtype and device of the mesh ``vertices``."""
+def checked_query_points(
+    name: str, points, vertices: jax.Array, *, op_name: str | None = None, vertices_name: str = "mesh_vertices", same_dtype: bool = True
+) -> jax.Array:
+    """Query points ``(..., 3)`` of a mesh query, with the device (and, if ``same_dtype``, the
+    dtype) of the mesh ``vertices``."""
     points = as_float_array(name, points)
-    check_same_dtype(vertices_name, vertices, name, points)
+    if same_dtype:
+        check_same_dtype(vertices_name, vertices, name, points)
     check_same_device(vertices_name, vertices, name, points)
     if points.ndim < 1 or points.shape[-1] != 3:
         prefix = f"{op_name}: " if op_name else ""
         raise ValueError(f"{prefix}{name} must have shape (..., 3), got {tuple(points.shape)}")
     return points
+
+
+def queries_in_working_dtype(name: str, points, vertices: jax.Array, *, op_name: str) -> tuple[jax.Array, jax.Array, np.dtype]:
+    """Query points ``(..., 3)`` of any real floating dtype, independent of the mesh's, as the
+    reference takes them: ``(points, vertices, output dtype)``, points and vertices in the working
+    dtype (float64 when both are float64, else float32, the reference's arithmetic) and the
+    points' own dtype, which the float outputs are cast back to."""
+    output_dtype = jnp.dtype(points.dtype) if hasattr(points, "dtype") else None
+    points = checked_query_points(name, widened_to_float32(points), vertices, op_name=op_name, same_dtype=False)
+    working = jnp.float64 if points.dtype == jnp.float64 and vertices.dtype == jnp.float64 else jnp.float32
+    return points.astype(working), vertices.astype(working), output_dtype or points.dtype
 
 
 def checked_mesh(op_name: str, mesh_vertices, mesh_indices, *, concrete: bool = False) -> tuple[jax.Array, jax.Array]:

@@ -12,8 +12,8 @@ from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors
 from .._geometry import ray_plane_intersection, ray_triangle_intersection, triangle_normal
-from .._validate import check_bool, check_real_scalar, check_same_shape
-from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_mesh, checked_query_points, replayed
+from .._validate import as_float_array, check_bool, check_real_scalar, check_same_shape, widened_to_float32
+from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_mesh, queries_in_working_dtype, replayed
 
 __all__ = ["ray_mesh_intersect"]
 
@@ -43,8 +43,10 @@ def ray_mesh_intersect(
         mesh_vertices: ``(V, 3)`` float32 or float64, ``V >= 1``.
         mesh_indices: ``(F, 3)`` or flat ``(3 F,)`` int32/int64 triangle indices in ``[0, V)``,
             ``F >= 1``, on the same device.
-        ray_origins: ``(..., 3)`` with the dtype and device of ``mesh_vertices``.
-        ray_directions: exactly the shape, dtype and device of ``ray_origins``.
+        ray_origins: ``(..., 3)`` of any real floating dtype (float16, bfloat16, float32,
+            float64; independent of the mesh's), on the device of ``mesh_vertices``. Computed in
+            float64 when origins and mesh are float64, else in float32 (as the reference).
+        ray_directions: the shape and device of ``ray_origins``, any real floating dtype.
         max_distance: positive finite real.
         warp_mesh: a :class:`~geomjax.MeshBVH` of this mesh (from :func:`~geomjax.build_bvh` or an
             earlier call with ``return_warp_mesh=True``) to skip building a BVH. It is only
@@ -63,7 +65,8 @@ def ray_mesh_intersect(
         ``return_warp_mesh``): bool ``(...)``; distance ``(...)`` (``+inf`` for misses); points
         ``(..., 3)`` (zero for misses); face ids ``(...)`` (``-1`` for misses; int64 when
         ``mesh_indices`` is int64, else int32); unit face normals ``(..., 3)`` following the
-        winding, not flipped toward the ray (zero for misses).
+        winding, not flipped toward the ray (zero for misses). Distances, points and normals
+        have the dtype of ``ray_origins``.
 
     Differentiable with respect to ``ray_origins``, ``ray_directions`` and ``mesh_vertices``:
     the intersection with the chosen face is replayed in JAX in the input dtype, so the hit
@@ -76,7 +79,7 @@ def ray_mesh_intersect(
     neighbour (the hit point is the same up to rounding).
 
     Raises:
-        TypeError: non-float or non-integer arrays, mismatched dtypes, a non-real or ``bool``
+        TypeError: non-float or non-integer arrays, a non-real or ``bool``
             ``max_distance``, a non-bool ``return_warp_mesh``, a ``warp_mesh`` that is not a
             MeshBVH, ``return_warp_mesh`` with traced mesh arrays.
         ValueError: bad shapes, empty meshes, indices out of range (checked on the host for
@@ -99,8 +102,9 @@ def ray_mesh_intersect(
         [ 0.986 -0.986]
     """
     vertices, faces = checked_mesh(_NAME, mesh_vertices, mesh_indices)
-    origins = checked_query_points("ray_origins", ray_origins, vertices, op_name=_NAME)
-    directions = check_same_shape("ray_origins", origins, "ray_directions", ray_directions)
+    origins, vertices, output_dtype = queries_in_working_dtype("ray_origins", ray_origins, vertices, op_name=_NAME)
+    directions = as_float_array("ray_directions", widened_to_float32(ray_directions))
+    directions = check_same_shape("ray_origins", origins, "ray_directions", directions.astype(origins.dtype))
     dtype = origins.dtype
     max_distance = check_real_scalar("max_distance", max_distance, dtype, positive=True)
     return_warp_mesh = check_bool("return_warp_mesh", return_warp_mesh)
@@ -124,10 +128,10 @@ def ray_mesh_intersect(
     )
     result = (
         hit.reshape(shape),
-        distance.reshape(shape),
-        points.reshape(shape + (3,)),
+        distance.reshape(shape).astype(output_dtype),
+        points.reshape(shape + (3,)).astype(output_dtype),
         hit_faces.astype(index_dtype).reshape(shape),
-        normals.reshape(shape + (3,)),
+        normals.reshape(shape + (3,)).astype(output_dtype),
     )
     return (*result, warp_mesh) if return_warp_mesh else result
 

@@ -15,7 +15,7 @@ from .._errors import raises_documented_errors
 from .._geometry import closest_point_on_triangle, overflow_safe_norm, winding_numbers
 from .._sharding import map_local_shards
 from .._validate import check_bool, check_real_scalar
-from .bvh import _extent, bvh_vertices32, checked_mesh, checked_query_points, closest_faces_brute_force, consistently_oriented_faces, replayed, sliver_faces
+from .bvh import _extent, bvh_vertices32, checked_mesh, closest_faces_brute_force, consistently_oriented_faces, queries_in_working_dtype, replayed, sliver_faces
 
 __all__ = ["signed_distance_field"]
 
@@ -59,7 +59,10 @@ def signed_distance_field(
         mesh_vertices: ``(V, 3)`` float32 or float64, ``V >= 1``.
         mesh_indices: ``(F, 3)`` or flat ``(3 F,)`` int32/int64 indices in ``[0, V)``,
             ``F >= 1``, same device.
-        input_points: ``(..., 3)`` queries with the dtype and device of ``mesh_vertices``.
+        input_points: ``(..., 3)`` queries of any real floating dtype (float16, bfloat16, float32,
+            float64; independent of the mesh's), on the device of ``mesh_vertices``. Computed in
+            float64 when queries and mesh are float64, else in float32 (as the reference); the
+            distances and closest points have the queries' dtype.
         max_dist: positive finite real: points with no face strictly closer get NaN.
         use_sign_winding_number: bool, see above.
         implementation: ``"warp"``, ``"jax"`` (also ``"torch"``) or ``None``. ``None`` picks
@@ -90,7 +93,7 @@ def signed_distance_field(
     orientations itself (host callback).
 
     Raises:
-        TypeError: non-float or non-integer arrays, mismatched dtypes, a non-real or ``bool``
+        TypeError: non-float or non-integer arrays, a non-real or ``bool``
             ``max_dist``, a non-bool ``use_sign_winding_number``.
         ValueError: bad shapes, empty meshes, indices out of range (checked on the host for
             concrete indices; traced ones raise at run time through ``equinox.error_if``), a
@@ -110,7 +113,7 @@ def signed_distance_field(
         [1. 0. 0.]
     """
     vertices, faces = checked_mesh(_NAME, mesh_vertices, mesh_indices)
-    points = checked_query_points("input_points", input_points, vertices, op_name=_NAME)
+    points, vertices, output_dtype = queries_in_working_dtype("input_points", input_points, vertices, op_name=_NAME)
     dtype = points.dtype
     max_dist = check_real_scalar("max_dist", max_dist, dtype, positive=True)
     winding = check_bool("use_sign_winding_number", use_sign_winding_number)
@@ -120,7 +123,7 @@ def signed_distance_field(
     def local(vertices, faces, points):
         shape = points.shape[:-1]
         sdf, closest, face_ids = _signed_distance(vertices, faces, points.reshape(-1, 3), max_dist=max_dist, winding=winding, backend=backend)
-        return sdf.reshape(shape), closest.reshape(shape + (3,)), face_ids.astype(index_dtype).reshape(shape)
+        return sdf.reshape(shape).astype(output_dtype), closest.reshape(shape + (3,)).astype(output_dtype), face_ids.astype(index_dtype).reshape(shape)
 
     # Queries are independent: sharded points are measured shard by shard against the whole mesh.
     return map_local_shards(local, (vertices, faces, points), (0, 0, points.ndim - 1), out_axes=points.ndim - 1)

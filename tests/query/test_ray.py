@@ -52,6 +52,25 @@ def test_reference_conventions(implementation):
 
 
 @pytest.mark.parametrize("implementation", ["jax", "warp"])
+def test_rays_of_any_floating_dtype_against_either_mesh_dtype(implementation):
+    # As the reference: any floating rays, whatever the mesh dtype; float32 arithmetic (float64
+    # where rays and mesh are both float64); distances, points and normals in the rays' dtype.
+    for mesh_dtype in (jnp.float32, jnp.float64):
+        vertices, faces = _sphere(mesh_dtype)
+        for ray_dtype, other in ((jnp.float16, jnp.bfloat16), (jnp.bfloat16, jnp.float32), (jnp.float32, jnp.float64), (jnp.float64, jnp.float16)):
+            origins = jnp.array([[0.0, 0, 0], [0.0, 0, -3]], ray_dtype)
+            directions = jnp.array([[0.0, 0, 1], [0.0, 0, 7]], other)  # directions of another dtype
+            hit, distance, points, face_ids, normals = ray_mesh_intersect(vertices, faces, origins, directions, implementation=implementation)
+            assert distance.dtype == points.dtype == normals.dtype == ray_dtype and face_ids.dtype == jnp.int32
+            working = jnp.float64 if ray_dtype == mesh_dtype == jnp.float64 else jnp.float32
+            tolerance = 4 * max(float(jnp.finfo(ray_dtype).eps), float(jnp.finfo(working).eps))
+            np.testing.assert_array_equal(hit, [True, True])
+            # (0, 0, +-1) are vertices of the icosphere: the hits are at 1 and 2, exactly.
+            np.testing.assert_allclose(np.asarray(distance, np.float64), [1.0, 2.0], rtol=tolerance)
+            np.testing.assert_allclose(np.asarray(points, np.float64), [[0, 0, 1], [0, 0, -1]], atol=tolerance)
+
+
+@pytest.mark.parametrize("implementation", ["jax", "warp"])
 def test_non_finite_rays_miss_with_the_documented_encoding(implementation):
     # NaN or infinite origins and directions are misses: mask False, face -1, distance +inf, zero
     # point and normal (Warp wrote NaN points and normals for them); the finite rays still hit.
@@ -175,9 +194,9 @@ def test_errors(implementation):
     rays = jnp.zeros((4, 3), jnp.float32)
     call = lambda *a, **k: ray_mesh_intersect(*a, implementation=implementation, **k)  # noqa: E731
     with pytest.raises(TypeError, match="ray_origins"):
-        call(vertices, faces, rays.astype(jnp.float64), rays.astype(jnp.float64))
+        call(vertices, faces, rays.astype(jnp.int32), rays)
     with pytest.raises(TypeError, match="ray_directions"):
-        call(vertices, faces, rays, rays.astype(jnp.float64))
+        call(vertices, faces, rays, rays.astype(jnp.int32))
     with pytest.raises(TypeError, match="mesh_indices"):
         call(vertices, faces.astype(jnp.float32), rays, rays)
     with pytest.raises(ValueError, match="ray_directions"):

@@ -42,6 +42,23 @@ def test_hand_checked_values(implementation, winding):
     assert face_ids.dtype == jnp.int32 and sdf.dtype == jnp.float64
 
 
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+def test_queries_of_any_floating_dtype_against_either_mesh_dtype(implementation):
+    # As the reference: float64 (or float16, bfloat16) queries against a float32 mesh; float32
+    # arithmetic (float64 where queries and mesh are both float64); outputs in the queries' dtype.
+    for mesh_dtype in (jnp.float32, jnp.float64):
+        vertices, faces = _sphere(mesh_dtype, 3)
+        for dtype in (jnp.float16, jnp.bfloat16, jnp.float32, jnp.float64):
+            points = jnp.array([[2.0, 0.0, 0.0], [0.0, 0.0, -0.25]], dtype)
+            sdf, closest, face_ids = signed_distance_field(vertices, faces, points, implementation=implementation)
+            assert sdf.dtype == closest.dtype == dtype and face_ids.dtype == jnp.int32
+            working = jnp.float64 if dtype == mesh_dtype == jnp.float64 else jnp.float32
+            tolerance = 4 * max(float(jnp.finfo(dtype).eps), float(jnp.finfo(working).eps))
+            np.testing.assert_allclose(float(sdf[0]), 1.0, rtol=tolerance)  # (1, 0, 0) is a vertex
+            np.testing.assert_allclose(np.asarray(closest[0], np.float64), [1, 0, 0], atol=tolerance)
+            assert -0.76 < float(sdf[1]) < -0.7  # inside: the inscribed sphere of icosphere(3) has radius 0.995
+
+
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("winding", [False, True])
 def test_warp_matches_brute_force(dtype, winding):
@@ -156,7 +173,7 @@ def test_errors():
     vertices, faces = _sphere(jnp.float32, 0)
     points = jnp.zeros((4, 3), jnp.float32)
     with pytest.raises(TypeError, match="input_points"):
-        signed_distance_field(vertices, faces, points.astype(jnp.float64))
+        signed_distance_field(vertices, faces, points.astype(jnp.int32))
     with pytest.raises(TypeError, match="mesh_vertices"):
         signed_distance_field(vertices.astype(jnp.float16), faces, points.astype(jnp.float16))
     with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):

@@ -348,3 +348,22 @@ def test_index_outputs_are_int64_whatever_the_index_dtype(index_dtype):
     torch._dynamo.reset()
     compiled = torch.compile(lambda p: torch_bridge.signed_distance_field(vertices, faces, p)[2], fullgraph=True, backend="aot_eager")
     assert compiled(points).dtype == torch.int64
+
+
+def test_query_dtypes_are_independent_of_the_mesh_dtype():
+    # The reference's contract: float16 rays against a float32 mesh, float64 queries against a
+    # float32 mesh; float outputs in the queries' dtype, ids int64, in eager and compiled calls.
+    vertices = VERTICES.float()
+    origins, directions = (r.half() for r in _rays())
+    hit, distance, points, faces, normals = torch_bridge.ray_mesh_intersect(vertices, FACES, origins, directions)
+    assert distance.dtype == points.dtype == normals.dtype == torch.float16 and faces.dtype == torch.int64
+    expected = geomjax.ray_mesh_intersect(_jax(vertices), _jax(FACES), _jax(origins), _jax(directions))
+    np.testing.assert_array_equal(hit.numpy(), np.asarray(expected[0]))
+    np.testing.assert_array_equal(distance.numpy(), np.asarray(expected[1]))
+    queries = _query_points(torch.float64)
+    sdf, closest, ids = torch_bridge.signed_distance_field(vertices, FACES, queries)
+    assert sdf.dtype == closest.dtype == torch.float64 and ids.dtype == torch.int64
+    np.testing.assert_array_equal(sdf.numpy(), np.asarray(geomjax.signed_distance_field(_jax(vertices), _jax(FACES), _jax(queries))[0]))
+    torch._dynamo.reset()
+    compiled = torch.compile(lambda q: torch_bridge.signed_distance_field(vertices, FACES, q)[0], fullgraph=True, backend="aot_eager")
+    assert compiled(queries).dtype == torch.float64
