@@ -190,11 +190,14 @@ def check_real_scalar(name: str, value, dtype, *, positive: bool = False, nonneg
 
 
 def check_real_sequence(name: str, value: Sequence, length: int, dtype, *, positive: bool = False) -> tuple[float, ...]:
-    """Validate a Python sequence of ``length`` real scalars (used for box origins and extents)."""
+    """Validate a Python sequence of ``length`` real scalars (used for box origins and extents).
+
+    A sequence of another length is a ``TypeError``, as in the reference ("must contain exactly D
+    real values"): it is not the sequence type the parameter takes."""
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
         raise TypeError(f"{name} must be an array or a sequence of {length} real numbers, got {type(value).__name__}")
     if len(value) != length:
-        raise ValueError(f"{name} must have {length} entries (one per coordinate), got {len(value)}")
+        raise TypeError(f"{name} must contain exactly {length} real values (one per coordinate), got {len(value)}")
     return tuple(check_real_scalar(f"{name}[{i}]", v, dtype, positive=positive) for i, v in enumerate(value))
 
 

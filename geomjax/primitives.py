@@ -127,8 +127,8 @@ def rectangle(nx: int, ny: int, *, origin: Sequence[float] = (0.0, 0.0), extent:
         dtype: float32 or float64 (default: float64 with ``jax_enable_x64``, else float32).
 
     Raises:
-        TypeError: non-integer counts, non-real corner entries, a non-float ``dtype``.
-        ValueError: counts below 1, wrong-length, non-finite or non-positive box entries.
+        TypeError: non-integer counts, non-real corner entries or a wrong number of them, a non-float ``dtype``.
+        ValueError: counts below 1, non-finite or non-positive box entries.
 
     Example:
         >>> import numpy as np
@@ -159,8 +159,8 @@ def tetrahedralized_box(nx: int, ny: int, nz: int, *, origin: Sequence[float] = 
         dtype: float32 or float64 (default: float64 with ``jax_enable_x64``, else float32).
 
     Raises:
-        TypeError: non-integer counts, non-real corner entries, a non-float ``dtype``.
-        ValueError: counts below 1, wrong-length, non-finite or non-positive box entries.
+        TypeError: non-integer counts, non-real corner entries or a wrong number of them, a non-float ``dtype``.
+        ValueError: counts below 1, non-finite or non-positive box entries.
 
     Example:
         >>> from geomjax import tetrahedralized_box

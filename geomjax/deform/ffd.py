@@ -89,7 +89,8 @@ def free_form_deform_points(
 
     Raises:
         TypeError: non-float arrays, mismatched dtypes, integer weights, a non-sequence box, a
-            ``bool`` or non-real sequence entry.
+            box sequence without exactly ``D`` entries (as the reference), a ``bool`` or non-real
+            sequence entry.
         ValueError: bad ranks or shapes (lattice rank, last lattice dim, box shapes), mixed
             batched/unbatched inputs, too few lattice nodes, unknown ``basis``, non-finite or
             non-positive sequence values, ``implementation="warp"`` with ``D > 3`` or too many

@@ -107,7 +107,7 @@ def mesh_to_voxel_fraction(
     Raises:
         TypeError: non-float vertices, non-integer indices, a non-real ``voxel_size``, threshold
             or accuracy, non-integer ``grid_dims``, ``n_samples`` or ``seed``, a non-bool
-            ``open_mesh``, a traced ``grid_dims``.
+            ``open_mesh``, a traced ``grid_dims``, an ``origin`` sequence without exactly 3 values.
         ValueError: bad shapes, an empty mesh, indices out of range or not a multiple of 3,
             non-finite vertices, a non-positive or non-finite ``voxel_size`` or accuracy, a
             non-finite threshold, ``grid_dims`` or ``n_samples`` not positive, too many voxels.

@@ -466,6 +466,8 @@ def good():
         {"origin": "abc"},
         {"origin": [0.0, True, 0.0]},
         {"extent": [1.0, "1", 1.0]},
+        {"origin": [0.0, 0.0]},  # the reference's type: "must contain exactly D real values"
+        {"extent": [1.0, 1.0, 1.0, 1.0]},
         {"point_weights": jnp.ones(4, jnp.int32)},
         {"point_weights": jnp.ones(4, jnp.float32)},
         {"point_weights": [1.0, 1.0, 1.0, 1.0]},
@@ -496,7 +498,6 @@ def test_type_errors(kwargs):
         {"lattice": jnp.zeros((3, 3, 3, 3)), "basis": "bspline"},  # bspline needs 4
         {"basis": "cubic"},
         {"basis": None},
-        {"origin": [0.0, 0.0]},
         {"origin": [0.0, float("nan"), 0.0]},
         {"origin": [0.0, 1e400, 0.0]},
         {"extent": [1.0, 0.0, 1.0]},

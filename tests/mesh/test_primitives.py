@@ -131,7 +131,7 @@ def test_polyline_from_points_and_counts():
         (lambda: icosphere(1, dtype="banana"), TypeError, "float32 or float64"),
         (lambda: rectangle(0, 1), ValueError, "nx must be at least 1"),
         (lambda: rectangle(1, 1, extent=(1.0, -1.0)), ValueError, "extent"),
-        (lambda: rectangle(1, 1, origin=(0.0,)), ValueError, "origin must have 2 entries"),
+        (lambda: rectangle(1, 1, origin=(0.0,)), TypeError, "origin must contain exactly 2 real values"),
         (lambda: tetrahedralized_box(1, 1, 0), ValueError, "nz must be at least 1"),
         (lambda: tetrahedralized_box(1, 1, 1, extent=(1.0, 1.0, float("nan"))), ValueError, "finite"),
         (lambda: polyline(1), ValueError, "at least 2"),
