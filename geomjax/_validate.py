@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from collections.abc import Sequence
 
 import jax
@@ -345,3 +346,37 @@ def check_host_vertex_field(op_name: str, name: str, value, vertices: jax.Array)
     if not np.all(np.isfinite(host) & (host > 0)):
         raise ValueError(f"{name} must be finite and positive")
     return host
+
+
+def available_bytes(device) -> int | None:
+    """Memory a new allocation on ``device`` can still get: the GPU allocator's limit minus its
+    use, or the host's available memory (Linux ``MemAvailable``); ``None`` when unknown."""
+    if device.platform != "cpu":
+        stats = device.memory_stats() or {}
+        if "bytes_limit" in stats:
+            return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+        return None
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_allocatable(description: str, count: int, bytes_each: int, device, *, limit: int = 2**31 - 1) -> None:
+    """``count`` items of about ``bytes_each`` bytes must fit in 32-bit indices and in the memory
+    ``device`` has left (``ValueError`` naming ``description``), so an oversized request fails
+    with the documented error before anything is allocated (XLA aborts the process when an
+    allocation fails inside a program)."""
+    if count > limit:
+        raise ValueError(f"{description} needs {count} items, more than {limit}")
+    available = available_bytes(device)
+    needed = count * bytes_each
+    if available is not None and needed > available:
+        raise ValueError(f"{description} needs about {needed / 2**30:.1f} GiB, more than the {available / 2**30:.1f} GiB available on {device.platform}")

@@ -19,7 +19,7 @@ from .._errors import raises_documented_errors
 from .._hash_grid import cell_order, check_cell_range, grid_resolution, table_dims
 from .._hashing import lowbias32
 from .._projection import SurfaceProjector
-from .._validate import check_choice, check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
+from .._validate import check_allocatable, check_choice, check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
 
 __all__ = ["mesh_poisson_disk_sample"]
 
@@ -141,8 +141,11 @@ def mesh_poisson_disk_sample(
             ``min_distance``, a non-integer count, seed or resolution, traced inputs (the
             output size depends on the data, so this runs eagerly: call it outside ``jit``).
         ValueError: bad shapes, indices out of range, non-finite vertices, non-positive or
-            non-finite radii, counts below 1, an unknown ``mode``, a zero-area surface, or a
-            radius too small for the coordinate range (more than ``2**30`` grid cells).
+            non-finite radii, counts below 1, an unknown ``mode``, a zero-area surface, a
+            radius too small for the coordinate range (more than ``2**30`` grid cells), or a
+            ``batch_size`` (dart throwing) or ``target_num_points`` (elimination, whose pool
+            holds 5x as many candidates) beyond ``2**31 - 1`` candidates or the memory the
+            device has left (checked before anything is allocated).
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
@@ -176,6 +179,14 @@ def mesh_poisson_disk_sample(
     # Not differentiated: only the backend's name matters here.
     backend = select_implementation(_NAME, implementation, platform=platform_of(vertices)).name
     device = next(iter(vertices.devices()))
+    # The candidates of one batch (dart throwing) or the whole pool (elimination) are generated
+    # at once: a count the device cannot hold must fail here, not abort the process in XLA.
+    if mode == "dart_throwing":
+        check_allocatable(f"{_NAME}: batch_size={batch_size}", batch_size, CANDIDATE_BYTES, device)
+    else:
+        target = max_points if target_num_points is None else target_num_points
+        what = f"target_num_points={target}" if target_num_points is not None else f"max_points={target} (the default target_num_points)"
+        check_allocatable(f"{_NAME}: {what} (a candidate pool of {POOL_FACTOR:g}x)", _pool_size(target), CANDIDATE_BYTES, device)
     surface = _surface(vertices, faces, vertex_radius, min_distance)
     search = _WarpSearch(device) if backend == "warp" else _JaxSearch(device)
     if mode == "dart_throwing":
@@ -270,6 +281,11 @@ def surface_candidates(corners, corner_radius, cdf, seed, *, count: int):
     return positions, radius, rank
 
 
+# Device and host bytes per surface candidate: the program's temporaries (indices, hashes, face,
+# barycentrics, corners, position, radius, rank) and the host copies, with room to spare.
+CANDIDATE_BYTES = 128
+
+
 def _candidates(surface: _Surface, seed: int, count: int):
     positions, radius, rank = surface_candidates(surface.corners, surface.corner_radius, surface.cdf, jnp.asarray(seed, jnp.uint32), count=count)
     return np.asarray(positions), np.asarray(radius), np.asarray(rank)
@@ -320,8 +336,12 @@ def _pair_weight_ratios(points, rows, columns, r_min, r_max):
     return x4 * x4
 
 
+def _pool_size(target: int) -> int:
+    return max(target + 1, round(POOL_FACTOR * target))
+
+
 def _weighted_sample_elimination(surface: _Surface, search, target: int, seed: int, resolution) -> np.ndarray:
-    pool_size = max(target + 1, round(POOL_FACTOR * target))
+    pool_size = _pool_size(target)
     r_max = 2.0 * math.sqrt(surface.area / (2.0 * math.sqrt(3.0) * target))
     points, _, _ = _candidates(surface, seed, pool_size)
     # The pool is listed cell by cell (this is "pool order"): neighbour searches run in order.

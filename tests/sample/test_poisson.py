@@ -280,3 +280,27 @@ def test_errors():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         call(vertices, faces, min_distance=0.5, batch_size=64, implementation="torch")
+
+
+def test_candidate_counts_beyond_the_device_are_value_errors(monkeypatch):
+    # XLA aborted the process when the candidate pool could not be allocated; the request must
+    # fail with the documented ValueError first, on every backend and through torch_bridge.
+    sphere = icosphere(1)
+    for implementation in ("jax", "warp"):
+        with pytest.raises(ValueError, match=r"target_num_points=1000000000 \(a candidate pool of 5x\) needs 5000000000 items, more than 2147483647"):
+            mesh_poisson_disk_sample(sphere.points, sphere.cells, mode="weighted_sample_elimination", target_num_points=10**9, implementation=implementation)
+    with pytest.raises(ValueError, match="batch_size=4294967296 needs 4294967296 items"):
+        mesh_poisson_disk_sample(sphere.points, sphere.cells, batch_size=2**32)
+    # Below the index limit, memory decides: as if the device had 1 GiB left.
+    from geomjax import _validate
+
+    monkeypatch.setattr(_validate, "available_bytes", lambda device: 2**30)
+    with pytest.raises(ValueError, match=r"batch_size=10000000 needs about 1\.2 GiB, more than the 1\.0 GiB available"):
+        mesh_poisson_disk_sample(sphere.points, sphere.cells, batch_size=10**7)
+    assert mesh_poisson_disk_sample(sphere.points, sphere.cells, min_distance=0.5, batch_size=1000).shape[1] == 3
+    torch = pytest.importorskip("torch")
+    import torch_bridge
+
+    with pytest.raises(ValueError, match="needs 5000000000 items"):
+        torch_bridge.mesh_poisson_disk_sample(torch.tensor(np.asarray(sphere.points)), torch.tensor(np.asarray(sphere.cells)),
+                                              mode="weighted_sample_elimination", target_num_points=10**9)  # fmt: skip
