@@ -27,7 +27,6 @@ the real kernel raises geomjax's exception — with its original type — when t
 
 from __future__ import annotations
 
-import contextlib
 import contextvars
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -91,18 +90,13 @@ def prepared():
     return _PREPARED.get()
 
 
-@contextlib.contextmanager
-def _providing(value):
+def _with_prepared(value, function, *args):
+    """``function(*args)`` with :func:`prepared` returning ``value`` meanwhile."""
     token = _PREPARED.set(value)
     try:
-        yield
+        return function(*args)
     finally:
         _PREPARED.reset(token)
-
-
-def _with_prepared(value, function, *args):
-    with _providing(value):
-        return function(*args)
 
 
 # ---------------------------------------------------------------------------------------------
