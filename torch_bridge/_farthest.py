@@ -15,7 +15,7 @@ import torch
 
 import geomjax
 
-from ._signature import BridgedOp, public_docstring, with_bridged_op
+from ._signature import BridgedOp, publish_wrapper
 
 FARTHEST_POINT_SAMPLING = BridgedOp(
     geomjax.farthest_point_sampling,
@@ -41,11 +41,8 @@ def farthest_point_sampling(
     return FARTHEST_POINT_SAMPLING(points, num_samples, implementation, start_index)
 
 
-farthest_point_sampling.__module__ = "torch_bridge"
-with_bridged_op(farthest_point_sampling, FARTHEST_POINT_SAMPLING)
-farthest_point_sampling.__doc__ = public_docstring(FARTHEST_POINT_SAMPLING).replace(
-    "custom op ``torch.ops.geomjax.farthest_point_sampling``",
-    "custom op ``torch.ops.geomjax.farthest_point_sampling`` (which takes the start as "
-    "``start_index``; ``random_start=True`` draws it per cloud with torch's global generator)",
-    1,
+publish_wrapper(
+    farthest_point_sampling,
+    FARTHEST_POINT_SAMPLING,
+    "(which takes the start as ``start_index``; ``random_start=True`` draws it per cloud with torch's global generator)",
 )

@@ -18,7 +18,7 @@ import geomjax
 from geomjax.query.bvh import MeshBVH
 
 from ._dlpack import to_jax
-from ._signature import BridgedOp, public_docstring, with_bridged_op
+from ._signature import BridgedOp, publish_wrapper
 
 
 def _intersect_with_handle(mesh_vertices, mesh_indices, ray_origins, ray_directions, max_distance, warp_mesh_handle, implementation):
@@ -87,11 +87,6 @@ def ray_mesh_intersect(
     return (*result, warp_mesh) if return_warp_mesh else result
 
 
-ray_mesh_intersect.__module__ = "torch_bridge"
-with_bridged_op(ray_mesh_intersect, RAY_MESH_INTERSECT)
-ray_mesh_intersect.__doc__ = public_docstring(RAY_MESH_INTERSECT).replace(
-    "custom op ``torch.ops.geomjax.ray_mesh_intersect``",
-    "custom op ``torch.ops.geomjax.ray_mesh_intersect`` (which takes the BVH as its handle words, "
-    "``warp_mesh_handle``, instead of ``warp_mesh``/``return_warp_mesh``)",
-    1,
+publish_wrapper(
+    ray_mesh_intersect, RAY_MESH_INTERSECT, "(which takes the BVH as its handle words, ``warp_mesh_handle``, instead of ``warp_mesh``/``return_warp_mesh``)"
 )

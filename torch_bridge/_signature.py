@@ -441,6 +441,16 @@ def with_bridged_op(function: Callable[..., Any], op: BridgedOp) -> PublicFuncti
     return public
 
 
+def publish_wrapper(function: Callable[..., Any], op: BridgedOp, op_differs: str) -> PublicFunction:
+    """``function``, a hand-written public front of ``op`` (which adds what a custom op cannot
+    carry), as a torch_bridge function: its module, ``bridged_op`` and the op's public docstring,
+    saying how the custom op's arguments differ (``op_differs``, a parenthesised remark)."""
+    function.__module__ = "torch_bridge"
+    custom_op = f"custom op ``torch.ops.{NAMESPACE}.{op.name}``"
+    function.__doc__ = public_docstring(op).replace(custom_op, f"{custom_op} {op_differs}", 1)
+    return with_bridged_op(function, op)
+
+
 def make_public_function(op: BridgedOp) -> PublicFunction:
     """The user-facing function: the reference's name, parameters, defaults and ``*`` marker."""
     parts: list[str] = []
