@@ -8,6 +8,11 @@ inputs sharded over a 4-device mesh and on the same inputs on one device, and co
 ``Auto`` axes (XLA's partitioner decides). ``CASES`` maps each case name to a function that
 raises ``AssertionError`` on failure; it is built without touching any device, so the parent
 process can import it to parametrize.
+
+The one-op value cases take their inputs from the one case table (``tests/op_cases.py``) and
+their backends from geomjax's registry; the scenarios after them (gradients through chained ops,
+the energies, a 2-D device mesh, eager and replicated calls, Sobolev) build their own inputs,
+whose layouts are the point of those cases.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import geomjax as g
+from geomjax._registry import REGISTRY
 
 NUM_DEVICES = 4
 NUM_DESIGNS = 8
@@ -108,58 +114,38 @@ def kept(axis_type, impl, axis=0):
     return axis if axis_type == "Explicit" or impl == "jax" else None
 
 
-def design_morph(axis_type, impl, dtype):
-    points, controls, displacements = design_batch(dtype)
-    radius = jnp.full(controls.shape[:2], 0.8, dtype)  # per-design radii: a batched companion too
-    args = (points, controls, displacements, radius)
-    fn = functools.partial(lambda p, c, d, r, impl: morph(p, c, d, impl, radius=r), impl=impl)
-    check(fn, args, [shard(a, axis_type, 0) for a in args], dtype, keep_axis=kept(axis_type, impl))
+# The ops whose values are compared sharded and unsharded, on the inputs of the one case table
+# (tests/op_cases.py): a batch of designs split over the designs (the table's arrays stacked
+# where its in_axes is 0), and the queries of one design split over the points.
+SHARDED_OPS = ("displace_points", "morph_points", "radial_basis_function_deform_points", "free_form_deform_points", "signed_distance_field")
+# The per-point arrays of a case (split with the queries); the others (controls, lattices, meshes)
+# are replicated.
+POINT_ARRAYS = frozenset({"points", "displacement", "point_weights", "input_points"})
 
 
-def design_rbf(axis_type, impl, dtype):
-    args = design_batch(dtype)
-    fn = functools.partial(rbf, impl=impl)
-    check(fn, args, [shard(a, axis_type, 0) for a in args], dtype, keep_axis=kept(axis_type, impl))
+def table_case(name: str, dtype: str):
+    # Imported here: the table builds arrays, which must wait for main()'s x64 setting.
+    from tests.op_cases import CASES as TABLE
+
+    return TABLE[name](jnp.dtype(dtype))
 
 
-def design_ffd(axis_type, impl, dtype):
-    args = (design_batch(dtype)[0], lattices(dtype))
-    fn = functools.partial(ffd, impl=impl)
-    check(fn, args, [shard(a, axis_type, 0) for a in args], dtype, keep_axis=kept(axis_type, impl))
+def design_values(name, axis_type, impl, dtype):
+    c = table_case(name, dtype)
+    rng = np.random.default_rng(SHARDED_OPS.index(name))
+    designs = tuple(
+        a if axis is None else jnp.asarray(np.asarray(a, np.float64)[None] + 0.02 * rng.normal(size=(NUM_DESIGNS, *a.shape)), a.dtype)
+        for a, axis in zip(c.arrays, c.in_axes)
+    )  # fmt: skip
+    sharded = [a if axis is None else shard(a, axis_type, 0) for a, axis in zip(designs, c.in_axes)]
+    check(lambda *a: c.call(*a, implementation=impl), designs, sharded, dtype, keep_axis=kept(axis_type, impl))
 
 
-def query_morph(axis_type, impl, dtype):
-    points = rng_array(4, (1024, 3), dtype)
-    _, controls, displacements = design_batch(dtype, num_controls=12)
-    fn = functools.partial(morph, controls=controls[0], displacements=displacements[0], impl=impl)
-    check(fn, (points,), (shard(points, axis_type, 0),), dtype, keep_axis=kept(axis_type, impl))
-
-
-def query_rbf(axis_type, impl, dtype):
-    points = rng_array(4, (1024, 3), dtype)
-    _, controls, displacements = design_batch(dtype)
-    fn = functools.partial(rbf, controls=controls[0], displacements=displacements[0], impl=impl)
-    check(fn, (points,), (shard(points, axis_type, 0),), dtype, keep_axis=kept(axis_type, impl))
-
-
-def query_ffd(axis_type, impl, dtype):
-    points = rng_array(4, (1024, 3), dtype, 1.2)
-    fn = functools.partial(ffd, lattice=lattices(dtype)[0], impl=impl)
-    check(fn, (points,), (shard(points, axis_type, 0),), dtype, keep_axis=kept(axis_type, impl))
-
-
-def query_sdf(axis_type, impl, dtype):
-    sphere = g.icosphere(1, dtype=dtype)
-    # A (4, 64, 3) array of queries split along its first axis (any leading shape works).
-    points = rng_array(5, (4, 64, 3), dtype, 1.5)
-    # The JAX path compiles slowly (brute force and exact winding numbers): winding signs only,
-    # which also covers the host callback that repairs face orientations.
-    for winding in (True,) if impl == "jax" else (False, True):
-
-        def fn(p, winding=winding):
-            return g.signed_distance_field(sphere.points, sphere.cells, p, use_sign_winding_number=winding, implementation=impl)
-
-        check(fn, (points,), (shard(points, axis_type, 0),), dtype, keep_axis=kept(axis_type, impl))
+def query_values(name, axis_type, impl, dtype):
+    c = table_case(name, dtype)
+    assert c.arrays[c.arg_names.index(next(n for n in c.arg_names if n in POINT_ARRAYS))].shape[0] % NUM_DEVICES == 0
+    sharded = [shard(a, axis_type, 0) if n in POINT_ARRAYS else a for n, a in zip(c.arg_names, c.arrays)]
+    check(lambda *a: c.call(*a, implementation=impl), c.arrays, sharded, dtype, keep_axis=kept(axis_type, impl))
 
 
 def design_grad(axis_type, impl):
@@ -248,7 +234,6 @@ VALUE_CONFIGS = [
     ("Auto", "jax", "float64"),
     ("Auto", "warp", "float64"),
 ]
-VALUE_CASES = (design_morph, design_rbf, design_ffd, query_morph, query_rbf, query_ffd, query_sdf)
 GRADIENT_CONFIGS = [
     ("Explicit", "jax", (design_grad, query_grad, design_energies)),
     ("Explicit", "warp", (design_grad, query_grad, design_energies)),
@@ -256,31 +241,17 @@ GRADIENT_CONFIGS = [
 ]
 
 for _axis_type, _impl, _dtype in VALUE_CONFIGS:
-    if _axis_type == "Auto" and _impl == "jax":
-        # Under Auto axes the JAX SDF is ordinary XLA partitioning of slow-to-compile code.
-        _cases = [c for c in VALUE_CASES if c is not query_sdf]
-    else:
-        _cases = VALUE_CASES
-    for _fn in _cases:
-        case(f"{_fn.__name__.replace('_', '-')}-{_axis_type}-{_impl}-{_dtype}")(functools.partial(_fn, _axis_type, _impl, _dtype))
+    for _name in SHARDED_OPS:
+        if _impl not in REGISTRY[_name].backends:
+            continue
+        if (_axis_type, _impl, _name) == ("Auto", "jax", "signed_distance_field"):
+            continue  # under Auto axes the JAX SDF is ordinary XLA partitioning of slow-to-compile code
+        for _values in (design_values, query_values):
+            _label = _values.__name__.split("_")[0]
+            case(f"{_label}-{_name}-{_axis_type}-{_impl}-{_dtype}")(functools.partial(_values, _name, _axis_type, _impl, _dtype))
 for _axis_type, _impl, _fns in GRADIENT_CONFIGS:
     for _fn in _fns:
         case(f"{_fn.__name__.replace('_', '-')}-{_axis_type}-{_impl}")(functools.partial(_fn, _axis_type, _impl))
-
-
-@case("design-displace-Explicit")
-def _():
-    points = design_batch("float64")[0]
-    displacement = rng_array(8, points.shape, "float64", 0.1)
-    weights = jnp.asarray(np.random.default_rng(9).uniform(size=points.shape[:2]) > 0.5)
-    args = (points, displacement, weights)
-    check(
-        lambda p, d, w: g.displace_points(p, d, point_weights=w),
-        args,
-        [shard(a, "Explicit", 0) for a in args],
-        "float64",
-        keep_axis=0,
-    )
 
 
 @case("design-sobolev-Explicit-warp")
