@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int, UInt32
 
 from .._blocking import map_query_blocks, query_block_size
-from .._errors import checked_pure_callback, raises_documented_errors
+from .._errors import checked_pure_callback, raises_documented_errors, runtime_check
 from .._geometry import closest_point_on_triangle
 from .._validate import (
     as_float_array,
@@ -46,6 +46,7 @@ __all__ = [
     "checked_mesh",
     "checked_query_points",
     "consistently_oriented_faces",
+    "finite_vertices",
     "queries_in_working_dtype",
     "replayed",
     "sliver_faces",
@@ -459,6 +460,13 @@ def queries_in_working_dtype(name: str, points, vertices: jax.Array, *, op_name:
     points = checked_query_points(name, widened_to_float32(points), vertices, op_name=op_name, same_dtype=False)
     working = jnp.float64 if points.dtype == jnp.float64 and vertices.dtype == jnp.float64 else jnp.float32
     return points.astype(working), vertices.astype(working), output_dtype or points.dtype
+
+
+def finite_vertices(op_name: str, vertices: jax.Array) -> jax.Array:
+    """``vertices`` after checking they are all finite (``ValueError``): a NaN vertex would
+    otherwise corrupt results far from it (signs, hit records). Concrete arrays are checked now;
+    traced ones with ``equinox.error_if`` when the program runs."""
+    return runtime_check(vertices, jnp.logical_not(jnp.all(jnp.isfinite(vertices))), f"{op_name}: mesh_vertices must be finite", ValueError)
 
 
 def checked_mesh(op_name: str, mesh_vertices, mesh_indices, *, concrete: bool = False) -> tuple[jax.Array, jax.Array]:

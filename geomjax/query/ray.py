@@ -13,7 +13,7 @@ from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors
 from .._geometry import ray_plane_intersection, ray_triangle_intersection, triangle_normal
 from .._validate import as_float_array, check_bool, check_real_scalar, check_same_shape, widened_to_float32
-from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_mesh, queries_in_working_dtype, replayed
+from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_mesh, finite_vertices, queries_in_working_dtype, replayed
 
 __all__ = ["ray_mesh_intersect"]
 
@@ -40,7 +40,8 @@ def ray_mesh_intersect(
     or non-finite direction or a non-finite origin.
 
     Args:
-        mesh_vertices: ``(V, 3)`` float32 or float64, ``V >= 1``.
+        mesh_vertices: ``(V, 3)`` float32 or float64, ``V >= 1``, finite (a NaN vertex would
+            corrupt results far from it).
         mesh_indices: ``(F, 3)`` or flat ``(3 F,)`` int32/int64 triangle indices in ``[0, V)``,
             ``F >= 1``, on the same device.
         ray_origins: ``(..., 3)`` of any real floating dtype (float16, bfloat16, float32,
@@ -82,9 +83,9 @@ def ray_mesh_intersect(
         TypeError: non-float or non-integer arrays, a non-real or ``bool``
             ``max_distance``, a non-bool ``return_warp_mesh``, a ``warp_mesh`` that is not a
             MeshBVH, ``return_warp_mesh`` with traced mesh arrays.
-        ValueError: bad shapes, empty meshes, indices out of range (checked on the host for
-            concrete indices; traced ones raise at run time through ``equinox.error_if``), a
-            non-positive or non-finite ``max_distance``, a ``warp_mesh`` of another shape.
+        ValueError: bad shapes, empty meshes, non-finite vertices or indices out of range
+            (checked on the host for concrete arrays; traced ones raise at run time through
+            ``equinox.error_if``), a non-positive or non-finite ``max_distance``, a ``warp_mesh`` of another shape.
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` or ``return_warp_mesh`` without warp-lang.
 
@@ -102,6 +103,7 @@ def ray_mesh_intersect(
         [ 0.986 -0.986]
     """
     vertices, faces = checked_mesh(_NAME, mesh_vertices, mesh_indices)
+    vertices = finite_vertices(_NAME, vertices)
     origins, vertices, output_dtype = queries_in_working_dtype("ray_origins", ray_origins, vertices, op_name=_NAME)
     directions = as_float_array("ray_directions", widened_to_float32(ray_directions))
     directions = check_same_shape("ray_origins", origins, "ray_directions", directions.astype(origins.dtype))

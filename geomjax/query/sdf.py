@@ -15,7 +15,17 @@ from .._errors import raises_documented_errors
 from .._geometry import closest_point_on_triangle, overflow_safe_norm, winding_numbers
 from .._sharding import map_local_shards
 from .._validate import check_bool, check_real_scalar
-from .bvh import _extent, bvh_vertices32, checked_mesh, closest_faces_brute_force, consistently_oriented_faces, queries_in_working_dtype, replayed, sliver_faces
+from .bvh import (
+    _extent,
+    bvh_vertices32,
+    checked_mesh,
+    closest_faces_brute_force,
+    consistently_oriented_faces,
+    finite_vertices,
+    queries_in_working_dtype,
+    replayed,
+    sliver_faces,
+)
 
 __all__ = ["signed_distance_field"]
 
@@ -56,7 +66,8 @@ def signed_distance_field(
       through ``jax.pure_callback`` under ``jit``): about 0.2 s per call for 80,000 faces.
 
     Args:
-        mesh_vertices: ``(V, 3)`` float32 or float64, ``V >= 1``.
+        mesh_vertices: ``(V, 3)`` float32 or float64, ``V >= 1``, finite (a NaN vertex would
+            corrupt results far from it).
         mesh_indices: ``(F, 3)`` or flat ``(3 F,)`` int32/int64 indices in ``[0, V)``,
             ``F >= 1``, same device.
         input_points: ``(..., 3)`` queries of any real floating dtype (float16, bfloat16, float32,
@@ -95,9 +106,9 @@ def signed_distance_field(
     Raises:
         TypeError: non-float or non-integer arrays, a non-real or ``bool``
             ``max_dist``, a non-bool ``use_sign_winding_number``.
-        ValueError: bad shapes, empty meshes, indices out of range (checked on the host for
-            concrete indices; traced ones raise at run time through ``equinox.error_if``), a
-            non-positive or non-finite ``max_dist``.
+        ValueError: bad shapes, empty meshes, non-finite vertices or indices out of range
+            (checked on the host for concrete arrays; traced ones raise at run time through
+            ``equinox.error_if``), a non-positive or non-finite ``max_dist``.
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
@@ -113,6 +124,7 @@ def signed_distance_field(
         [1. 0. 0.]
     """
     vertices, faces = checked_mesh(_NAME, mesh_vertices, mesh_indices)
+    vertices = finite_vertices(_NAME, vertices)
     points, vertices, output_dtype = queries_in_working_dtype("input_points", input_points, vertices, op_name=_NAME)
     dtype = points.dtype
     max_dist = check_real_scalar("max_dist", max_dist, dtype, positive=True)

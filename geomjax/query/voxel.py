@@ -15,10 +15,10 @@ from jaxtyping import Array, Float, Int
 from .. import _geometry
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
-from .._errors import raises_documented_errors, runtime_check
+from .._errors import raises_documented_errors
 from .._hashing import lowbias32
 from .._validate import as_float_array, check_bool, check_integer, check_real_scalar, check_real_sequence, check_same_device, is_array
-from .bvh import checked_mesh, consistently_oriented_faces
+from .bvh import checked_mesh, consistently_oriented_faces, finite_vertices
 
 __all__ = ["mesh_to_voxel_fraction"]
 
@@ -142,7 +142,7 @@ def mesh_to_voxel_fraction(
     check_real_scalar("winding_number_accuracy", winding_number_accuracy, jnp.float32, positive=True)
     # Not differentiated: only the backend's name matters here.
     backend = select_implementation(_NAME, implementation, platform=platform_of(vertices)).name
-    vertices = _checked_finite(jax.lax.stop_gradient(vertices))
+    vertices = finite_vertices(_NAME, jax.lax.stop_gradient(vertices))
     if open_mesh:
         # A few flipped faces would corrupt the winding number near them.
         faces = consistently_oriented_faces(faces)
@@ -207,16 +207,6 @@ def _strata(n_samples: int) -> int:
     while (m + 1) ** 3 <= n_samples:
         m += 1
     return m
-
-
-def _checked_finite(vertices: jax.Array) -> jax.Array:
-    finite = jnp.all(jnp.isfinite(vertices))
-    message = f"{_NAME}: mesh_vertices must be finite"
-    if isinstance(vertices, jax.core.Tracer):
-        return runtime_check(vertices, jnp.logical_not(finite), message, ValueError)
-    if not bool(finite):
-        raise ValueError(message)
-    return vertices
 
 
 # ---------------------------------------------------------------------------------------------

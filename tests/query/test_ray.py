@@ -217,3 +217,6 @@ def test_errors(implementation):
         call(vertices[:0], faces, rays, rays)
     with pytest.raises(KeyError):
         ray_mesh_intersect(vertices, faces, rays, rays, implementation="embree")
+    # A NaN vertex gave hits whose distance, point and normal disagreed: rejected.
+    with pytest.raises(ValueError, match="ray_mesh_intersect: mesh_vertices must be finite"):
+        call(vertices.at[0, 2].set(jnp.nan), faces, rays, rays)

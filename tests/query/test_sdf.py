@@ -190,5 +190,11 @@ def test_errors():
         signed_distance_field(vertices, faces.reshape(-1)[:4], points)
     with pytest.raises(KeyError):
         signed_distance_field(vertices, faces, points, implementation="open3d")
+    # A NaN vertex flipped signs at queries far from it: non-finite vertices are rejected.
+    for implementation in IMPLEMENTATIONS:
+        with pytest.raises(ValueError, match="signed_distance_field: mesh_vertices must be finite"):
+            signed_distance_field(vertices.at[0, 1].set(jnp.nan), faces, points, implementation=implementation)
+    with pytest.raises(Exception, match="signed_distance_field: mesh_vertices must be finite"):  # traced: JAX's runtime error
+        jax.block_until_ready(jax.jit(lambda v: signed_distance_field(v, faces, points))(vertices.at[3, 0].set(jnp.inf)))
     with pytest.raises(Exception, match="mesh_indices must lie in"):
         jax.block_until_ready(jax.jit(signed_distance_field)(vertices, faces.at[0, 0].set(99), points))
