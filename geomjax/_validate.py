@@ -312,18 +312,11 @@ def check_host_surface(op_name: str, mesh_vertices, mesh_indices, *, min_vertice
     return vertices, faces
 
 
-def widened_to_float32(x):
-    """A float16, bfloat16 or float8 array as float32 (exact: every narrower float is a float32);
-    anything else unchanged, for the usual checks to accept or reject."""
-    if is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and jnp.dtype(x.dtype) not in FLOAT_DTYPES:
-        return jnp.asarray(x).astype(jnp.float32)
-    return x
-
-
-def as_float32(x):
-    """Any real floating array as float32 (float64 rounded, narrower floats exact); anything else
-    unchanged, for the usual checks to accept or reject."""
-    if is_array(x) and jnp.issubdtype(x.dtype, jnp.floating):
+def as_float32(x, *, narrower_only: bool = False):
+    """A real floating array as float32 (float64 rounded; float16, bfloat16 and float8 exact, as
+    every narrower float is a float32); with ``narrower_only``, float32 and float64 arrays stay as
+    they are. Anything else is unchanged, for the usual checks to accept or reject."""
+    if is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and not (narrower_only and jnp.dtype(x.dtype) in FLOAT_DTYPES):
         return jnp.asarray(x).astype(jnp.float32)
     return x
 
@@ -336,7 +329,7 @@ def check_host_vertex_field(op_name: str, name: str, value, vertices: jax.Array)
     """
     if value is None:
         return None
-    field = as_float_array(name, widened_to_float32(value))
+    field = as_float_array(name, as_float32(value, narrower_only=True))
     if isinstance(field, jax.core.Tracer):
         raise TypeError(f"{op_name} runs eagerly: {name} must be concrete")
     check_same_device("mesh_vertices", vertices, name, field)

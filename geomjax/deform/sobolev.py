@@ -47,6 +47,7 @@ from ..linalg import (
 )
 from ..linalg._helmholtz import StiffnessOperator
 from ..linalg._multilevel import Coarsening
+from ..linalg._pcg import solver_name
 
 __all__ = ["sobolev_deform_points"]
 
@@ -457,8 +458,7 @@ def _warp_operator(points, free, cells, incidence, num_referenced, length_scale_
 
 def _warp_pcg(operator, preconditioner, rhs, guess, tolerance, max_iterations):
     result = jacobi_pcg(operator.mv, rhs, operator.inverse_diagonal(), guess, rtol=tolerance, max_steps=max_iterations, preconditioner=preconditioner)
-    method = "Jacobi-PCG" if preconditioner is None else preconditioner.method
-    return solution_or_error(result, max_steps=max_iterations, context=_NAME, method=method)
+    return solution_or_error(result, max_steps=max_iterations, context=_NAME, method=solver_name(preconditioner))
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(9,))

@@ -207,6 +207,11 @@ def solution_or_error(result: PCGResult, *, max_steps: int, context: str, method
     )
 
 
+def solver_name(preconditioner) -> str:
+    """How failure messages name a solve: Jacobi-PCG, or the preconditioner's ``method``."""
+    return "Jacobi-PCG" if preconditioner is None else getattr(preconditioner, "method", "PCG")
+
+
 def _without_guess(options: dict[str, Any]) -> dict[str, Any]:
     return {key: value for key, value in options.items() if key != "y0"}
 
@@ -257,8 +262,7 @@ class JacobiPCG(lx.AbstractLinearSolver):
             guess = jnp.zeros_like(vector)
         preconditioner = options.get("preconditioner")
         result = jacobi_pcg(operator.mv, vector, options["inverse_diagonal"], guess, rtol=self.rtol, max_steps=self.max_steps, preconditioner=preconditioner)
-        method = "Jacobi-PCG" if preconditioner is None else getattr(preconditioner, "method", "PCG")
-        solution = solution_or_error(result, max_steps=self.max_steps, context=self.context, method=method)
+        solution = solution_or_error(result, max_steps=self.max_steps, context=self.context, method=solver_name(preconditioner))
         return solution, lx.RESULTS.successful, {"num_steps": result.num_steps}
 
     def transpose(self, state, options: dict[str, Any]):

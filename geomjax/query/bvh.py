@@ -28,6 +28,7 @@ from .._blocking import map_query_blocks, query_block_size
 from .._errors import checked_pure_callback, raises_documented_errors, runtime_check
 from .._geometry import closest_point_on_triangle
 from .._validate import (
+    as_float32,
     as_float_array,
     as_index_array,
     check_bool,
@@ -35,7 +36,7 @@ from .._validate import (
     check_real_scalar,
     check_same_device,
     check_same_dtype,
-    widened_to_float32,
+    is_array,
 )
 
 __all__ = [
@@ -456,10 +457,10 @@ def queries_in_working_dtype(name: str, points, vertices: jax.Array, *, op_name:
     reference takes them: ``(points, vertices, output dtype)``, points and vertices in the working
     dtype (float64 when both are float64, else float32, the reference's arithmetic) and the
     points' own dtype, which the float outputs are cast back to."""
-    output_dtype = jnp.dtype(points.dtype) if hasattr(points, "dtype") else None
-    points = checked_query_points(name, widened_to_float32(points), vertices, op_name=op_name, same_dtype=False)
-    working = jnp.float64 if points.dtype == jnp.float64 and vertices.dtype == jnp.float64 else jnp.float32
-    return points.astype(working), vertices.astype(working), output_dtype or points.dtype
+    checked = checked_query_points(name, as_float32(points, narrower_only=True), vertices, op_name=op_name, same_dtype=False)
+    output_dtype = jnp.dtype(points.dtype) if is_array(points) else checked.dtype
+    working = jnp.float64 if checked.dtype == jnp.float64 and vertices.dtype == jnp.float64 else jnp.float32
+    return checked.astype(working), vertices.astype(working), output_dtype
 
 
 def finite_vertices(op_name: str, vertices: jax.Array) -> jax.Array:

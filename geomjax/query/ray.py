@@ -12,7 +12,7 @@ from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors
 from .._geometry import ray_plane_intersection, ray_triangle_intersection, triangle_normal
-from .._validate import as_float_array, check_bool, check_real_scalar, check_same_shape, widened_to_float32
+from .._validate import as_float32, as_float_array, check_bool, check_real_scalar, check_same_shape
 from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_mesh, finite_vertices, queries_in_working_dtype, replayed
 
 __all__ = ["ray_mesh_intersect"]
@@ -105,7 +105,7 @@ def ray_mesh_intersect(
     vertices, faces = checked_mesh(_NAME, mesh_vertices, mesh_indices)
     vertices = finite_vertices(_NAME, vertices)
     origins, vertices, output_dtype = queries_in_working_dtype("ray_origins", ray_origins, vertices, op_name=_NAME)
-    directions = as_float_array("ray_directions", widened_to_float32(ray_directions))
+    directions = as_float_array("ray_directions", as_float32(ray_directions, narrower_only=True))
     directions = check_same_shape("ray_origins", origins, "ray_directions", directions.astype(origins.dtype))
     dtype = origins.dtype
     max_distance = check_real_scalar("max_distance", max_distance, dtype, positive=True)

@@ -181,10 +181,10 @@ def mesh_poisson_disk_sample(
     device = next(iter(vertices.devices()))
     # The candidates of one batch (dart throwing) or the whole pool (elimination) are generated
     # at once: a count the device cannot hold must fail here, not abort the process in XLA.
+    target = max_points if target_num_points is None else target_num_points  # of the elimination
     if mode == "dart_throwing":
         check_allocatable(f"{_NAME}: batch_size={batch_size}", batch_size, CANDIDATE_BYTES, device)
     else:
-        target = max_points if target_num_points is None else target_num_points
         what = f"target_num_points={target}" if target_num_points is not None else f"max_points={target} (the default target_num_points)"
         check_allocatable(f"{_NAME}: {what} (a candidate pool of {POOL_FACTOR:g}x)", _pool_size(target), CANDIDATE_BYTES, device)
     surface = _surface(vertices, faces, vertex_radius, min_distance)
@@ -194,7 +194,6 @@ def mesh_poisson_disk_sample(
     else:
         if vertex_radius is not None:
             warnings.warn("per_vertex_radius is ignored by weighted_sample_elimination", UserWarning, stacklevel=2)
-        target = max_points if target_num_points is None else target_num_points
         samples = _weighted_sample_elimination(surface, search, target, seed, resolution)
     return jax.device_put(jnp.asarray(samples, jnp.float32), device)
 
