@@ -379,6 +379,113 @@ def sobolev_rows(meshes: list[RealMesh], repeat: int, max_counted_iterations: in
     return rows
 
 
+REMESH_COUNTS = (500, 2000)  # clusters; a mesh with fewer vertices than twice a count gets V // 2 instead
+REMESH_TARGET_RATIO = 5.0  # issue 15: at least 5x faster than pyacvd
+
+
+def remesh_rows(meshes: list[RealMesh], repeat: int) -> list[dict]:
+    """Section "remesh": geomjax ``remeshing`` (default backend), its reference algorithm and pyacvd.
+
+    Per triangle mesh and cluster count: best-of-``repeat`` time, Euler characteristic and
+    boundary edges of the input and the output, edges with more than two triangles, whether
+    geomjax warned (``RemeshTopologyWarning``), the sampled symmetric Hausdorff distance
+    (``benchmarks/_quality.py``, 100,000 probes a side) also in cluster spacings ``sqrt(A / K)``,
+    and the smallest angle (minimum and mean over triangles). The geomjax row carries the time
+    ratio against pyacvd and whether it meets issue 15's targets: topology kept, Hausdorff no
+    worse than pyacvd's, smallest angle above 10 degrees, at least 5x faster.
+    """
+    import warnings
+
+    import _quality as quality
+
+    from geomjax import RemeshTopologyWarning, remeshing
+    from geomjax.remesh.clustering import remesh_with_sources
+
+    try:
+        import pyacvd
+        import pyvista
+    except ImportError:
+        pyacvd = None
+        print("pyacvd is not installed (pip install '.[bench]'): no pyacvd rows", flush=True)
+    rows = []
+    for mesh in meshes:
+        if mesh.kind != "tri" or mesh.name.startswith("icosphere"):
+            continue
+        points, cells = mesh.points, mesh.cells.astype(np.int64)
+        euler, boundary, _ = _surface_topology(cells)
+        for count in sorted({min(count, len(points) // 2) for count in REMESH_COUNTS}):
+            spacing = math.sqrt(quality.surface_area(points, cells) / count)
+            methods = {
+                "geomjax": lambda: remeshing(points, cells, count),
+                "geomjax reference algorithm": lambda: _result_arrays(remesh_with_sources(points, cells, count, reference=True)),
+            }
+            if pyacvd is not None:
+                surface = pyvista.PolyData(points.copy(), np.hstack([np.full((len(cells), 1), 3), cells]).ravel())
+
+                def acvd(surface=surface, count=count):
+                    clustering = pyacvd.Clustering(surface)
+                    clustering.cluster(count)
+                    out = clustering.create_mesh()
+                    return np.asarray(out.points), np.asarray(out.faces).reshape(-1, 4)[:, 1:]
+
+                methods["pyacvd"] = acvd
+            case_rows = []
+            for method, run in methods.items():
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    out_points, out_faces = (np.asarray(a) for a in jax.block_until_ready(run()))
+                seconds = best_time(lambda run=run: _quietly(run), repeat=repeat, warmup=0)
+                out_points = out_points.astype(np.float64)
+                out_euler, out_boundary, crowded = _surface_topology(out_faces)
+                hausdorff = quality.hausdorff_distance(points, cells, out_points, out_faces, num_probes=100_000)
+                angles = quality.triangle_quality(out_points, out_faces)
+                case_rows.append({
+                    "section": "remesh", "mesh": mesh.name, "clusters": count, "method": method, "time_s": seconds,
+                    "vertices_out": len(out_points), "euler_in": euler, "euler_out": out_euler,
+                    "boundary_in": boundary, "boundary_out": out_boundary, "crowded_edges": crowded,
+                    "warned": any(issubclass(w.category, RemeshTopologyWarning) for w in caught),
+                    "hausdorff": hausdorff, "hausdorff_spacings": hausdorff / spacing,
+                    "min_angle_min": angles["min_angle_deg_min"], "min_angle_mean": angles["min_angle_deg_mean"],
+                })  # fmt: skip
+            ours = case_rows[0]
+            if pyacvd is not None:
+                theirs = case_rows[-1]
+                ours["speedup"] = theirs["time_s"] / ours["time_s"]
+                kept = ours["euler_out"] == euler and (ours["boundary_out"] == 0) == (boundary == 0) and ours["crowded_edges"] == 0
+                ours["met"] = bool(
+                    kept and ours["hausdorff"] <= theirs["hausdorff"] and ours["min_angle_min"] > 10.0 and ours["speedup"] >= REMESH_TARGET_RATIO
+                )
+            for row in case_rows:
+                print(
+                    f"{mesh.name} K={count} {row['method']}: {row['time_s'] * 1e3:.0f} ms, Euler {row['euler_in']} -> {row['euler_out']}, "
+                    f"boundary edges {row['boundary_in']} -> {row['boundary_out']}, Hausdorff {row['hausdorff']:.4f} "
+                    f"({row['hausdorff_spacings']:.2f} spacings), smallest angle {row['min_angle_min']:.1f} deg",
+                    flush=True,
+                )
+            rows += case_rows
+    return rows
+
+
+def _quietly(run):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return run()
+
+
+def _result_arrays(result):
+    return result.vertices, result.faces
+
+
+def _surface_topology(faces: np.ndarray) -> tuple[int, int, int]:
+    """``(Euler characteristic, boundary edges, edges with more than two triangles)``."""
+    faces = np.asarray(faces, np.int64)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return int(np.unique(faces).size - counts.size + len(faces)), int(np.sum(counts == 1)), int(np.sum(counts > 2))
+
+
 def _within(count: int | str, budget: int) -> bool:
     return isinstance(count, int) and count <= budget
 
@@ -395,22 +502,25 @@ def main() -> None:
         help=f"meshes with < {QUICK_MAX_VERTICES:,} vertices, no icosphere(6), jax path only, counts to {QUICK_MAX_COUNTED_ITERATIONS}",
     )
     parser.add_argument("--repeat", type=int, default=None, help="best of this many timed runs (default 3, 1 with --quick)")
+    parser.add_argument("--sections", nargs="+", choices=("sobolev", "remesh"), default=("sobolev", "remesh"), help="the measurements to run")
     args = parser.parse_args()
     start = time.perf_counter()
     meshes = load_meshes(args.quick)
-    rows = []
-    # One section per measurement on the same meshes; each returns its rows (tagged "section").
+    # One section per measurement on the same meshes; each returns its rows and has its table.
     repeat = args.repeat or (1 if args.quick else 3)
-    rows += sobolev_rows(
-        meshes,
-        repeat,
-        QUICK_MAX_COUNTED_ITERATIONS if args.quick else MAX_COUNTED_ITERATIONS,
-        # Every program here is compiled once and run a few times, so compiling sets the time:
-        # --quick leaves out the Warp path (the same PCG with Warp's stiffness product) to stay
-        # under a minute.
-        ("jax",) if args.quick else ("jax", "warp"),
-    )
-    report("real_meshes", rows)
+    if "sobolev" in args.sections:
+        rows = sobolev_rows(
+            meshes,
+            repeat,
+            QUICK_MAX_COUNTED_ITERATIONS if args.quick else MAX_COUNTED_ITERATIONS,
+            # Every program here is compiled once and run a few times, so compiling sets the time:
+            # --quick leaves out the Warp path (the same PCG with Warp's stiffness product) to
+            # stay under a minute.
+            ("jax",) if args.quick else ("jax", "warp"),
+        )
+        report("real_meshes", rows)
+    if "remesh" in args.sections:
+        report("real_meshes_remesh", remesh_rows(meshes, repeat))
     print(f"total {time.perf_counter() - start:.1f} s")
 
 

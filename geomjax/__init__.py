@@ -31,6 +31,7 @@ from .query.bvh import build_bvh as build_bvh
 from .query.ray import ray_mesh_intersect as ray_mesh_intersect
 from .query.sdf import signed_distance_field as signed_distance_field
 from .query.voxel import mesh_to_voxel_fraction as mesh_to_voxel_fraction
+from .remesh.clustering import RemeshTopologyWarning as RemeshTopologyWarning
 from .remesh.clustering import remeshing as remeshing
 from .sample.farthest import farthest_point_sampling as farthest_point_sampling
 from .sample.poisson import mesh_poisson_disk_sample as mesh_poisson_disk_sample

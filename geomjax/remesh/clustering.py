@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import inspect
 import math
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -19,8 +20,23 @@ from .._hash_grid import table_dims
 from .._projection import SurfaceProjector
 from .._validate import check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
 from ..sample.farthest import farthest_point_sampling
+from ._quadrics import ClusterQuadrics
+from ._surface_clusters import MeshEdges, cluster_means, connected_clusters, mend_tears
+from ._triangulation import (
+    boundary_vertices,
+    collapse_poor_triangles,
+    degenerate_vertices,
+    delaunay_flips,
+    distinct_triangles,
+    drop_crowded_edges,
+    nondegenerate,
+    overturned_vertices,
+    relaxation_targets,
+    remove_degree_three,
+    topology,
+)
 
-__all__ = ["remeshing", "remesh_with_sources", "RemeshResult", "SurfaceProjector"]
+__all__ = ["remeshing", "remesh_with_sources", "RemeshResult", "RemeshTopologyWarning", "SurfaceProjector"]
 
 _NAME = "remeshing"
 
@@ -28,12 +44,28 @@ _NAME = "remeshing"
 MAX_HASH_GRID_RESOLUTION = 256
 RADIUS_SCALE_CAP = 12.0  # the search radius never exceeds max(s, 12) cluster spacings
 MASS_FLOOR = float(np.finfo(np.float32).tiny)
-# A triangle whose doubled area is below this many dtype epsilons of its squared edge lengths
-# has zero area up to rounding (coincident or collinear projected vertices).
-DEGENERATE_EPSILONS = 4.0
 RELAXATION_ITERATIONS = 8  # surface relaxation rounds after the clustering (see remeshing)
-FLIP_ROUNDS = 32  # rounds of parallel Delaunay edge flips per flip pass
-FLIP_TOLERANCE = 1e-6  # radians: opposite angles must exceed pi by this much (co-circular quads stay)
+GRAPH_LLOYD_ROUNDS = 2  # Lloyd rounds on the surface's edge graph after the Euclidean ones
+TEAR_REPAIR_ROUNDS = 12  # rounds of mending fins and pinches of the cluster layout
+
+
+class RemeshTopologyWarning(UserWarning):
+    """The remeshed surface's topology (closedness, Euler characteristic) differs from the input's.
+
+    :func:`remeshing` and :meth:`geomjax.Mesh.remesh` warn with it when the clusters are too few
+    to resolve a thin part or a tunnel of the input. Turn it into an error where a topology
+    change must not pass:
+
+    Example:
+        >>> import warnings
+        >>> from geomjax import RemeshTopologyWarning, icosphere, remeshing
+        >>> sphere = icosphere(3)
+        >>> with warnings.catch_warnings():
+        ...     warnings.simplefilter("error", RemeshTopologyWarning)
+        ...     vertices, faces = remeshing(sphere.points, sphere.cells, 100)
+        >>> print(vertices.shape[0] - 3 * faces.shape[0] // 2 + faces.shape[0])  # Euler characteristic
+        2
+    """
 
 
 class RemeshResult(NamedTuple):
@@ -84,30 +116,48 @@ def remeshing(
        seed 0, so the result is deterministic.
     3. ``max_iterations`` Lloyd iterations: each vertex joins its nearest centroid (ties: the
        lowest centroid index), then each centroid moves to the mass-weighted mean of its
-       vertices (an empty cluster keeps its position); a final assignment gives the labels.
-    4. Each centroid is projected onto the closest point of the source surface (a Warp BVH
-       search, or brute force on the JAX path, then
-       :func:`geomjax._geometry.closest_point_on_triangle`).
+       vertices (an empty cluster keeps its position). Then (not in the reference) the
+       clusters become regions of the surface: 2 more Lloyd rounds in which each vertex joins
+       the cluster whose seed (the member closest to its centroid) is nearest along the mesh's
+       edges (Dijkstra), so no cluster reaches across a thin part or a narrow gap; and up to 4
+       rounds that mend the layouts whose relabelled triangles would not be a surface (a
+       cluster squeezed between two others gives up its seed; two clusters meeting along two
+       arcs get one of them split, the smallest other cluster giving up its seed).
+    4. A point per cluster on the source surface: the reference projects the centroid onto
+       the closest point of the source surface (a Warp BVH search, or brute force on the JAX
+       path, then :func:`geomjax._geometry.closest_point_on_triangle`). geomjax first moves
+       it to the point closest to the planes of the cluster's triangles, along the directions
+       in which they bend (across a crease, onto a tip), so that features are not cut off.
     5. Topology: every input triangle is relabelled by its vertices' clusters; triangles with a
        repeated label are dropped, duplicates (in any orientation) keep their first occurrence,
-       triangles of zero area after projection are dropped, and while an edge has more than two
-       triangles one triangle per such edge is removed (the one touching the most such edges,
-       then the smallest, then the lowest index).
+       triangles of zero area after projection are dropped (geomjax first puts their corners
+       back on the projected centroids), and while an edge has more than two triangles one
+       triangle per such edge is removed (the one touching the most such edges, then the
+       smallest, then the lowest index).
     6. Relaxation on the surface (not in the reference, which stops at step 5): 8 rounds of one
        round of Delaunay edge flips (an interior edge whose opposite angles sum to more than pi
-       is flipped, unless that would fold the pair, duplicate an edge or leave a vertex with
-       fewer than three edges) followed by an optimal-Delaunay-triangulation step: each interior
-       vertex moves to the mass-weighted mean of the circumcentres of its triangles (the
-       midpoint of the longest edge for an obtuse one) and is projected onto the source surface
-       again; a move that would overturn a triangle is undone. Boundary vertices stay. A final
-       complete flip pass and the checks of step 5 follow. This raises the radius ratios and
-       the smallest angles and lowers the sampled Hausdorff distance, at a few times the cost
-       of steps 1 to 5 (``benchmarks/bench_sampling_remesh.py`` measures both, against pyacvd).
-       Unused vertices are dropped and the result is returned in the input frame and dtype.
+       is flipped, unless that would fold the pair, duplicate an edge, leave a vertex with
+       fewer than three edges, or cut a crease of more than 20 degrees) followed by an
+       optimal-Delaunay-triangulation step: each interior vertex moves towards the
+       mass-weighted mean of the circumcentres of its triangles (the midpoint of the longest
+       edge for an obtuse one), within the directions in which its cluster's triangles are
+       flat (in the tangent plane, along a crease, not at a tip or corner), and is projected
+       onto the source surface again; a move that would overturn a triangle is undone.
+       Boundary vertices stay. A complete flip pass follows; then each interior vertex of
+       degree three that lies near the plane of its neighbours is removed, and the shortest
+       edge of each triangle with an angle below 12 degrees is collapsed into its endpoint on
+       the stronger feature, where that keeps the topology, turns no triangle over and
+       improves the triangles; last, the checks of step 5. This raises the radius ratios and
+       the smallest angles and keeps tips and creases, at a few times the cost of steps 1 to 5
+       (``benchmarks/bench_sampling_remesh.py`` and ``benchmarks/bench_real_meshes.py``
+       measure both, against pyacvd). Unused vertices are dropped and the result is returned
+       in the input frame and dtype.
 
     The output is manifold in the sense that every edge has at most two triangles, and every
-    vertex lies on the source surface. Clustering can weld sheets closer than the cluster
-    spacing; output vertices are not welded by position.
+    vertex lies on the source surface. A closed input stays closed and keeps its Euler
+    characteristic (genus) whenever the clusters can resolve its thin parts and tunnels; where
+    they cannot, a :class:`RemeshTopologyWarning` says so (use more clusters). Output vertices
+    are not welded by position.
 
     Args:
         mesh_vertices: ``(V, 3)`` float32 or float64, finite, ``V >= 3``. Computations run in
@@ -151,6 +201,10 @@ def remeshing(
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
+    Warns:
+        RemeshTopologyWarning: the result's Euler characteristic differs from the input's, or
+            a closed input came out with boundary edges (too few clusters for its thin parts).
+
     Not differentiable. Deterministic on CPU for a given machine (the Warp path's assignment is
     exact; its centroid sums are NumPy sums in a fixed order). :meth:`geomjax.Mesh.remesh` adds
     barycentric transfer of point data, differentiable with respect to the data.
@@ -182,6 +236,7 @@ def remesh_with_sources(
     *,
     density_exponent: float = 1.0,
     relaxation_iterations: int = RELAXATION_ITERATIONS,
+    reference: bool = False,
     **options,
 ) -> RemeshResult:
     """:func:`remeshing`, also returning the source triangle and weights of each new vertex.
@@ -190,8 +245,9 @@ def remesh_with_sources(
     through ``options``), plus ``density_exponent`` ``p`` (a positive real): the mass density is
     ``rho = (vertex_density / max)^p``. :func:`remeshing` uses ``p = 1``;
     :meth:`geomjax.Mesh.remesh` uses ``p = 4`` for a ``resolution_field`` (a linear
-    resolution ``r`` is a CVT density ``r^4``); and ``relaxation_iterations`` (integer ``>=
-    0``, default 8): the rounds of step 6, 0 for the reference's algorithm. Returns a
+    resolution ``r`` is a CVT density ``r^4``); ``relaxation_iterations`` (integer ``>= 0``,
+    default 8): the rounds of step 6; and ``reference`` (bool, default False): True runs the
+    reference's algorithm (Euclidean clusters, projected centroids, steps 1 to 5 only). Returns a
     :class:`RemeshResult`.
 
     Example:
@@ -206,6 +262,8 @@ def remesh_with_sources(
         True
     """
     options = remesh_options(options)
+    if not isinstance(reference, bool):
+        raise TypeError(f"reference must be a bool, got {type(reference).__name__}")
     vertices, faces = check_host_surface(_NAME, mesh_vertices, mesh_indices, min_vertices=3)
     num_vertices = vertices.shape[0]
     n_clusters = check_integer("n_clusters", n_clusters, minimum=3)
@@ -271,35 +329,62 @@ def remesh_with_sources(
         centroids, labels = _lloyd_warp(x, mass, centroids, max_iterations, radius, resolution, device)
     else:
         centroids, labels = _lloyd_jax(jax.device_put(x, device), jax.device_put(mass.astype(dtype), device), jax.device_put(centroids, device), max_iterations)
-
-    # 4. Projection onto the source surface, in the input frame.
+    index_dtype = jnp.int64 if np.dtype(mesh_indices.dtype) == np.int64 else jnp.int32
     project = SurfaceProjector(vertices, faces, backend)
-    positions, source_faces, barycentric = project((centroids * scale + centre).astype(dtype))
+    if reference:
+        # 4. and 5. as the reference: projected centroids and their relabelled triangles.
+        positions, source_faces, barycentric = project((centroids * scale + centre).astype(dtype))
+        triangles = _surviving(distinct_triangles(labels[faces]), positions, "topology reconstruction")
+        return _result(positions, triangles, source_faces, barycentric, index_dtype, device)
+    edges = MeshEdges.of(x, faces)
+    centroids, labels = connected_clusters(edges, x, mass, centroids, labels, GRAPH_LLOYD_ROUNDS)
+    centroids, labels = mend_tears(edges, x, faces, mass, centroids, labels, TEAR_REPAIR_ROUNDS)
+
+    # 4. A point per cluster on the source surface, in the input frame.
+    quadrics = ClusterQuadrics.of(x, faces, face_area, labels, n_clusters)
+    positions, source_faces, barycentric = project((quadrics.snap(centroids, spacing) * scale + centre).astype(dtype))
 
     # 5. Topology.
-    triangles = _cluster_triangles(labels[faces], positions)
-    if triangles.shape[0] == 0:
-        raise RuntimeError(f"{_NAME}: no triangle survived the topology reconstruction (try more clusters)")
+    triangles = distinct_triangles(labels[faces])
+    flat = degenerate_vertices(triangles, positions, n_clusters)
+    if np.any(flat):  # quadric points that make a triangle flat fall back to the centroids
+        positions, source_faces, barycentric = (np.array(a) for a in (positions, source_faces, barycentric))
+        positions[flat], source_faces[flat], barycentric[flat] = project((centroids[flat] * scale + centre).astype(dtype))
+    triangles = _surviving(triangles, positions, "topology reconstruction")
 
     # 6. Relaxation on the surface.
     for _ in range(relaxation_iterations):
         # One round per step: the next steps continue the flips, the final pass completes them.
-        triangles = _delaunay_flips(positions, triangles, rounds=1)
+        triangles = delaunay_flips(positions, triangles, rounds=1)
         vertex_rho = None if rho is None else np.einsum("vk,vk->v", barycentric, rho[faces[source_faces]])
-        fixed = _boundary_vertices(triangles, n_clusters)
-        moved = project(_relaxation_targets(positions, triangles, vertex_rho, fixed))
+        targets = relaxation_targets(positions, triangles, vertex_rho, boundary_vertices(triangles, n_clusters))
+        moved = project((positions + quadrics.free_moves(targets - positions)).astype(dtype))
         # A step that would overturn a triangle is undone for that triangle's vertices.
-        undo = _overturned_vertices(positions, moved[0], triangles)
+        undo = overturned_vertices(positions, moved[0], triangles)
         positions = np.where(undo[:, None], positions, moved[0])
         source_faces = np.where(undo, source_faces, moved[1])
         barycentric = np.where(undo[:, None], barycentric, moved[2])
     if relaxation_iterations:
-        triangles = _drop_crowded_edges(*_nondegenerate(_delaunay_flips(positions, triangles), positions))
-        if triangles.shape[0] == 0:
-            raise RuntimeError(f"{_NAME}: no triangle survived the relaxation (try more clusters)")
+        # Flips stop at degree three, so the degree-three vertices go after them; the last
+        # needles and caps (at creases and tips, which flips and moves keep) lose an edge.
+        triangles = remove_degree_three(positions, delaunay_flips(positions, triangles), n_clusters)
+        triangles = collapse_poor_triangles(positions, triangles, boundary_vertices(triangles, n_clusters), quadrics.crease_strength())
+        triangles = _surviving(triangles, positions, "relaxation")
+    _warn_if_topology_changed(edges, triangles, n_clusters)
+    return _result(positions, triangles, source_faces, barycentric, index_dtype, device)
 
+
+def _surviving(triangles: np.ndarray, positions: np.ndarray, step: str) -> np.ndarray:
+    """The triangles of non-zero area, at most two per edge; ``RuntimeError`` if none is left."""
+    triangles = drop_crowded_edges(*nondegenerate(triangles, positions)) if triangles.shape[0] else triangles
+    if triangles.shape[0] == 0:
+        raise RuntimeError(f"{_NAME}: no triangle survived the {step} (try more clusters)")
+    return triangles
+
+
+def _result(positions, triangles, source_faces, barycentric, index_dtype, device) -> RemeshResult:
+    """The used vertices, renumbered, on ``device``."""
     used, compact = np.unique(triangles, return_inverse=True)
-    index_dtype = jnp.int64 if np.dtype(mesh_indices.dtype) == np.int64 else jnp.int32
     put = functools.partial(jax.device_put, device=device)
     return RemeshResult(
         vertices=put(positions[used]),
@@ -379,15 +464,8 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device):
     cell = 2 * radius
     low, high = x.min(axis=0) - radius, x.max(axis=0) + radius
     dims = table_dims(low, high, cell, (resolution,) * 3)
-    num = centroids.shape[0]
-    weighted = mass[:, None] * x
     for _ in range(iterations):
-        labels = nearest_centroids(x, centroids, radius, cell, dims, warp_device)
-        total = np.bincount(labels, weights=mass, minlength=num)
-        sums = np.stack([np.bincount(labels, weights=weighted[:, k], minlength=num) for k in range(3)], axis=1)
-        occupied = total > 0
-        centroids = centroids.copy()
-        centroids[occupied] = (sums[occupied] / total[occupied, None]).astype(x.dtype)
+        centroids = cluster_means(x, mass, nearest_centroids(x, centroids, radius, cell, dims, warp_device), centroids)
     return centroids, nearest_centroids(x, centroids, radius, cell, dims, warp_device)
 
 
@@ -421,193 +499,16 @@ def _lloyd_jax_jit(x, mass, centroids, iterations):
     return centroids, nearest(centroids)
 
 
-# ---------------------------------------------------------------------------------------------
-# Projection and topology.
-
-
-def _cluster_triangles(labelled: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """Relabelled triangles -> distinct, non-degenerate triangles, at most two per edge."""
-    distinct = (labelled[:, 0] != labelled[:, 1]) & (labelled[:, 1] != labelled[:, 2]) & (labelled[:, 0] != labelled[:, 2])
-    triangles = labelled[distinct]
-    if triangles.shape[0] == 0:
-        return triangles
-    # Duplicates in any orientation: keep the first occurrence (lexsort is stable).
-    ordered = np.sort(triangles, axis=1)
-    order = np.lexsort(ordered.T[::-1])
-    ordered = ordered[order]
-    first = np.ones(order.size, bool)
-    first[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
-    triangles = triangles[np.sort(order[first])]
-
-    return _drop_crowded_edges(*_nondegenerate(triangles, positions))
-
-
-def _nondegenerate(triangles: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Triangles of non-zero area (up to rounding) and their doubled areas."""
-    a, b, c = (positions[triangles[:, k]] for k in range(3))
-    ab, ac, bc = b - a, c - a, c - b
-    area2 = np.linalg.norm(np.cross(ab, ac), axis=1)
-    edge2 = np.sum(ab * ab + ac * ac + bc * bc, axis=1)
-    keep = area2 > DEGENERATE_EPSILONS * np.finfo(positions.dtype).eps * edge2
-    return triangles[keep], area2[keep]
-
-
-def _half_edges(triangles: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per half-edge (3 per triangle, in order): tail, head and the undirected edge key
-    ``min * stride + max`` (``stride`` above every vertex index)."""
-    tail = triangles.reshape(-1).astype(np.int64)
-    head = np.roll(triangles, -1, axis=1).reshape(-1).astype(np.int64)
-    return tail, head, np.minimum(tail, head) * stride + np.maximum(tail, head)
-
-
-def _drop_crowded_edges(triangles: np.ndarray, area2: np.ndarray) -> np.ndarray:
-    """Remove triangles until every edge has at most two.
-
-    Each round removes, for every edge with more than two triangles, the triangle touching the
-    most such edges (then the smallest, then the lowest index).
-    """
-    index = np.arange(triangles.shape[0])
-    while triangles.shape[0]:
-        _, _, key = _half_edges(triangles, int(triangles.max()) + 1)
-        owner = np.repeat(np.arange(triangles.shape[0]), 3)
-        _, edge, counts = np.unique(key, return_inverse=True, return_counts=True)
-        crowded = counts[edge] > 2
-        if not np.any(crowded):
-            break
-        touching = np.bincount(owner[crowded], minlength=triangles.shape[0])
-        candidates = np.flatnonzero(crowded)
-        # Per crowded edge, the first after sorting by (edge, -touching, area, index).
-        faces = owner[candidates]
-        ranked = candidates[np.lexsort((index[faces], area2[faces], -touching[faces], edge[candidates]))]
-        head = np.ones(ranked.size, bool)
-        head[1:] = edge[ranked[1:]] != edge[ranked[:-1]]
-        keep = np.ones(triangles.shape[0], bool)
-        keep[owner[ranked[head]]] = False
-        triangles, area2, index = triangles[keep], area2[keep], index[keep]
-    return triangles
-
-
-def _corner_angle(apex: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    u, v = a - apex, b - apex
-    return np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), np.sum(u * v, axis=-1))
-
-
-def _delaunay_flips(positions: np.ndarray, triangles: np.ndarray, rounds: int = FLIP_ROUNDS) -> np.ndarray:
-    """Flip interior edges whose opposite angles sum to more than pi (Delaunay on the surface).
-
-    Only edges shared by exactly two consistently oriented triangles are flipped, never onto an
-    existing edge, never leaving a vertex with fewer than three edges, and never folding the
-    pair (both new triangles must face like the old ones). Each round flips an independent set
-    of edges (no two share a triangle), the most violating first, for at most ``rounds`` rounds.
-    """
-    x = positions.astype(np.float64)
-    triangles = triangles.copy()
-    stride = np.int64(positions.shape[0])
-    owner = np.repeat(np.arange(triangles.shape[0]), 3)
-    for _ in range(rounds):
-        tail, head, key = _half_edges(triangles, int(stride))
-        opposite = np.roll(triangles, -2, axis=1).reshape(-1)
-        order = np.argsort(key, kind="stable")
-        sorted_key = key[order]
-        starts = np.flatnonzero(np.concatenate([[True], sorted_key[1:] != sorted_key[:-1]]))
-        counts = np.diff(np.append(starts, key.size))
-        edges = sorted_key[starts]
-        paired = starts[counts == 2]
-        first, second = order[paired], order[paired + 1]
-        consistent = (tail[first] == head[second]) & (head[first] == tail[second])
-        first, second = first[consistent], second[consistent]
-        u, v, p, q = tail[first], head[first], opposite[first], opposite[second]
-        excess = _corner_angle(x[p], x[u], x[v]) + _corner_angle(x[q], x[u], x[v]) - np.pi
-        violating = excess > FLIP_TOLERANCE
-        first, second, u, v, p, q, excess = (a[violating] for a in (first, second, u, v, p, q, excess))
-        new_keys = np.minimum(p, q) * stride + np.maximum(p, q)
-        slot = np.minimum(np.searchsorted(edges, new_keys), edges.size - 1)
-        degree = np.bincount(np.concatenate([edges // stride, edges % stride]), minlength=int(stride))
-        old_normal = _unit(np.cross(x[v] - x[u], x[p] - x[u])) + _unit(np.cross(x[u] - x[v], x[q] - x[v]))
-        unfolded = (np.sum(np.cross(x[q] - x[u], x[p] - x[u]) * old_normal, axis=1) > 0) & (np.sum(np.cross(x[v] - x[q], x[p] - x[q]) * old_normal, axis=1) > 0)
-        candidates = np.flatnonzero((edges[slot] != new_keys) & (degree[u] > 3) & (degree[v] > 3) & unfolded)
-        if candidates.size == 0:
-            break
-        rank = np.empty(candidates.size, np.int64)
-        rank[np.argsort(-excess[candidates], kind="stable")] = np.arange(candidates.size)
-        face_a, face_b = owner[first[candidates]], owner[second[candidates]]
-        best = np.full(triangles.shape[0], candidates.size)
-        np.minimum.at(best, face_a, rank)
-        np.minimum.at(best, face_b, rank)
-        chosen = (best[face_a] == rank) & (best[face_b] == rank)
-        # Two flips of one round must not create the same edge.
-        chosen &= _first_occurrence(np.where(chosen, new_keys[candidates], -1 - np.arange(candidates.size)))
-        c = candidates[chosen]
-        triangles[owner[first[c]]] = np.stack([u[c], q[c], p[c]], axis=1)
-        triangles[owner[second[c]]] = np.stack([q[c], v[c], p[c]], axis=1)
-    return triangles
-
-
-def _first_occurrence(values: np.ndarray) -> np.ndarray:
-    _, first = np.unique(values, return_index=True)
-    mask = np.zeros(values.shape, bool)
-    mask[first] = True
-    return mask
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.where(norm > 0, norm, 1.0)
-
-
-def _boundary_vertices(triangles: np.ndarray, num_vertices: int) -> np.ndarray:
-    """``(num_vertices,)`` bool: vertices on an edge of only one triangle."""
-    tail, head, key = _half_edges(triangles, num_vertices)
-    _, edge, counts = np.unique(key, return_inverse=True, return_counts=True)
-    boundary = counts[edge] == 1
-    fixed = np.zeros(num_vertices, bool)
-    fixed[tail[boundary]] = True
-    fixed[head[boundary]] = True
-    return fixed
-
-
-def _relaxation_targets(positions: np.ndarray, triangles: np.ndarray, vertex_rho: np.ndarray | None, fixed: np.ndarray) -> np.ndarray:
-    """One optimal-Delaunay-triangulation step: each vertex to the mass-weighted mean of the
-    circumcentres of its triangles.
-
-    A triangle's mass is its area (times its mean density). The circumcentre of an obtuse
-    triangle, which can lie far outside it, is replaced by the midpoint of its longest edge (the
-    closest point of the triangle to it). ``fixed`` vertices (on a boundary) and vertices in no
-    triangle stay where they are.
-    """
-    x = positions.astype(np.float64)
-    a, b, c = (x[triangles[:, k]] for k in range(3))
-    ab, ac = b - a, c - a
-    normal = np.cross(ab, ac)
-    normal2 = np.sum(normal * normal, axis=1)
-    ab2, ac2, bc2 = np.sum(ab * ab, axis=1), np.sum(ac * ac, axis=1), np.sum((c - b) ** 2, axis=1)
-    safe = np.where(normal2 > 0, normal2, 1.0)
-    centre = a + (np.cross(normal, ab) * ac2[:, None] + np.cross(ac, normal) * ab2[:, None]) / (2 * safe[:, None])
-    # Obtuse at a (bc^2 > ab^2 + ac^2) puts the circumcentre beyond edge bc, and so on.
-    longest = np.argmax(np.stack([bc2 - ab2 - ac2, ac2 - ab2 - bc2, ab2 - ac2 - bc2], axis=1), axis=1)
-    obtuse = np.max(np.stack([bc2 - ab2 - ac2, ac2 - ab2 - bc2, ab2 - ac2 - bc2], axis=1), axis=1) >= 0
-    midpoints = np.stack([(b + c) / 2, (a + c) / 2, (a + b) / 2], axis=1)[np.arange(a.shape[0]), longest]
-    centre = np.where(obtuse[:, None], midpoints, centre)
-    mass = 0.5 * np.sqrt(normal2)
-    if vertex_rho is not None:
-        mass = mass * vertex_rho[triangles].mean(axis=1)
-    num = x.shape[0]
-    corners = triangles.reshape(-1)
-    total = np.bincount(corners, weights=np.repeat(mass, 3), minlength=num)
-    sums = np.stack([np.bincount(corners, weights=np.repeat(mass * centre[:, k], 3), minlength=num) for k in range(3)], axis=1)
-    move = (total > 0) & ~fixed
-    out = x.copy()
-    out[move] = sums[move] / total[move, None]
-    return out
-
-
-def _overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """``(V,)`` bool: vertices of triangles whose normal turns by more than 90 degrees."""
-
-    def normals(x):
-        return np.cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
-
-    turned = np.sum(normals(old.astype(np.float64)) * normals(new.astype(np.float64)), axis=1) <= 0
-    mask = np.zeros(old.shape[0], bool)
-    mask[triangles[turned].reshape(-1)] = True
-    return mask
+def _warn_if_topology_changed(edges: MeshEdges, triangles: np.ndarray, n_clusters: int) -> None:
+    """Warn when the remesh lost the input's Euler characteristic, or a closed input its closedness."""
+    euler, boundary = topology(triangles)
+    if euler == edges.euler and (edges.boundary.size or not boundary):
+        return
+    found = f"Euler characteristic {euler} and {boundary} boundary edges"
+    expected = f"Euler characteristic {edges.euler}" + ("" if edges.boundary.size else ", closed")
+    warnings.warn(
+        f"{_NAME}: the remeshed surface's topology differs from the input's ({found}; the input: {expected}): "
+        f"{n_clusters} clusters cannot resolve its thin parts or tunnels there; use more clusters",
+        RemeshTopologyWarning,
+        stacklevel=4,
+    )

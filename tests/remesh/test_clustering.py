@@ -1,26 +1,29 @@
 """remeshing / Mesh.remesh: manifold output on the surface, determinism, parity, density,
 seeding paths, relaxation, barycentric transfer and validation."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from geomjax import Mesh, icosphere, rectangle, remeshing, tetrahedralized_box
+from geomjax import Mesh, RemeshTopologyWarning, icosphere, rectangle, remeshing, tetrahedralized_box
 from geomjax.remesh.clustering import remesh_with_sources
 from benchmarks import _quality as quality
+from tests.shared_meshes import requires_shared_meshes, shared_surface
 
 pytest.importorskip("warp")
 
 BACKENDS = ["jax", "warp"]
 
 
-def _jittered_sphere(subdivisions=3, dtype=jnp.float64, seed=0):
+def _jittered_sphere(subdivisions=3, dtype=jnp.float64, seed=0, jitter=0.03):
     """An icosphere with jittered vertices: no exact symmetric ties between backends."""
     sphere = icosphere(subdivisions)
     points = np.asarray(sphere.points)
-    points = points * (1 + 0.03 * np.random.default_rng(seed).uniform(-1, 1, (points.shape[0], 1)))
+    points = points * (1 + jitter * np.random.default_rng(seed).uniform(-1, 1, (points.shape[0], 1)))
     return jnp.asarray(points, dtype), jnp.asarray(np.asarray(sphere.cells), jnp.int32)
 
 
@@ -87,8 +90,10 @@ def test_source_faces_and_weights_rebuild_the_vertices():
 
 
 def test_reference_algorithm_without_relaxation():
-    vertices, faces = _jittered_sphere()
-    plain = remesh_with_sources(vertices, faces, 150, relaxation_iterations=0)
+    # A smooth surface: on one rough at the cluster scale (3% jitter on 4 vertices per cluster),
+    # the relaxation keeps the roughness's "creases" where they are and gains nothing.
+    vertices, faces = _jittered_sphere(4, jitter=0.01)
+    plain = remesh_with_sources(vertices, faces, 150, reference=True)
     relaxed = remesh_with_sources(vertices, faces, 150)
     _check_surface_mesh(plain.vertices, plain.faces, vertices, faces, 150, closed=True)
     plain_stats = quality.triangle_quality(plain.vertices, plain.faces)
@@ -108,7 +113,9 @@ def test_more_iterations_and_clusters():
 
 @pytest.mark.parametrize("implementation", BACKENDS)
 def test_density_puts_more_vertices_where_it_is_larger(implementation):
-    vertices, faces = _jittered_sphere(3)
+    # Smooth at the cluster scale: the relaxation, which pulls vertices towards the density,
+    # leaves the vertices of a surface rough at that scale where the roughness puts them.
+    vertices, faces = _jittered_sphere(3, jitter=0.01)
     z = np.asarray(vertices)[:, 2]
     density = jnp.asarray(np.where(z > 0, 4.0, 1.0))
     out_vertices, out_faces = remeshing(vertices, faces, 150, vertex_density=density, implementation=implementation)
@@ -200,6 +207,121 @@ def test_errors():
         remeshing(vertices, faces, 10, implementation="open3d")
     with pytest.raises(TypeError, match="eagerly"):
         jax.jit(lambda v: remeshing(v, faces, 10))(vertices)
+
+
+# ---------------------------------------------------------------------------------------------
+# Topology and features on real and stress-case surfaces
+
+
+def _euler_and_boundary(faces):
+    counts = _edge_counts(faces)
+    return np.unique(np.asarray(faces)).size - counts.size + len(faces), int(np.sum(counts == 1))
+
+
+def _smallest_angle(vertices, faces):
+    return quality.triangle_quality(vertices, faces)["min_angle_deg_min"]
+
+
+def _torus(major, minor, around, across):
+    """A closed torus grid: ``around x across`` vertices, two triangles per grid cell."""
+    u, v = np.meshgrid(np.arange(around) * 2 * np.pi / around, np.arange(across) * 2 * np.pi / across, indexing="ij")
+    ring = major + minor * np.cos(v)
+    points = np.stack([ring * np.cos(u), ring * np.sin(u), minor * np.sin(v)], axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(around), np.arange(across), indexing="ij")
+    a, b = i * across + j, (i + 1) % around * across + j
+    c, d = (i + 1) % around * across + (j + 1) % across, i * across + (j + 1) % across
+    return points, np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)]).reshape(-1, 3).astype(np.int32)
+
+
+def _two_spheres():
+    """Two unit spheres whose surfaces cross (centres 0.8 apart): a self-intersecting input."""
+    sphere = icosphere(4)
+    points, cells = np.asarray(sphere.points, np.float64), np.asarray(sphere.cells)
+    return np.concatenate([points, points + [0.8, 0.0, 0.0]]), np.concatenate([cells, cells + len(points)])
+
+
+def _pancake():
+    """A closed sphere squashed to 2% of its width: top and bottom 50x closer than the clusters."""
+    sphere = icosphere(4)
+    return np.asarray(sphere.points, np.float64) * [1.0, 1.0, 0.02], np.asarray(sphere.cells)
+
+
+def _duplicated_sphere():
+    """icosphere(4) with every vertex stored twice, the copies unused."""
+    sphere = icosphere(4)
+    return np.concatenate([np.asarray(sphere.points, np.float64)] * 2), np.asarray(sphere.cells)
+
+
+def _sliver_sphere():
+    """icosphere(3) with each triangle split at a point 1e-4 of the way from its centroid to a
+    corner: three triangles per face, two of them slivers."""
+    sphere = icosphere(3)
+    points, cells = np.asarray(sphere.points, np.float64), np.asarray(sphere.cells)
+    centre = points[cells].mean(axis=1)
+    centre += 1e-4 * (points[cells[:, 0]] - centre)
+    new = len(points) + np.arange(len(cells))
+    fan = [np.stack([cells[:, k], cells[:, (k + 1) % 3], new], axis=1) for k in range(3)]
+    return np.concatenate([points, centre]), np.concatenate(fan)
+
+
+STRESS_CASES = {
+    # Euclidean clusters weld the two sides (the reference algorithm opens 45 boundary edges).
+    "thin sheet": (_pancake, 200),
+    # Euclidean clusters join the spheres where they cross (the reference: Euler characteristic -14).
+    "self-intersecting": (_two_spheres, 300),
+    "sliver triangles": (_sliver_sphere, 150),
+    "duplicated vertices": (_duplicated_sphere, 200),
+    # 40 clusters around a torus of tube radius 1/4: the reference opens 4 boundary edges.
+    "coarse torus": (lambda: _torus(1.0, 0.25, 96, 24), 40),
+}
+
+
+@pytest.mark.parametrize("case", list(STRESS_CASES))
+def test_stress_cases_keep_their_topology(case):
+    build, n_clusters = STRESS_CASES[case]
+    points, cells = build()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RemeshTopologyWarning)
+        vertices, faces = remeshing(jnp.asarray(points), jnp.asarray(cells, jnp.int32), n_clusters)
+    assert _euler_and_boundary(faces) == _euler_and_boundary(cells)
+    _check_surface_mesh(vertices, faces, points, cells, n_clusters, closed=True)
+    assert _smallest_angle(vertices, faces) > 10.0
+
+
+def test_too_few_clusters_for_a_thin_tube_warn():
+    # A tube 0.1 across and 40 clusters for a ring of length 2 pi: each cluster wraps the tube.
+    points, cells = _torus(1.0, 0.05, 128, 8)
+    with pytest.warns(RemeshTopologyWarning, match="topology differs from the input's .* use more clusters"):
+        remeshing(jnp.asarray(points), jnp.asarray(cells), 60)
+
+
+# Shared meshes, their cluster counts, and the largest sampled Hausdorff distance to the input in
+# cluster spacings sqrt(area / K) (measured 0.22 to 0.66; a cut-off tip or a hole is about one
+# spacing or more: before the surface clusters and quadric points, at 2000 clusters, 0.85 on
+# fertility and 2.1 on the screwdriver, with 8 and 6 boundary edges).
+REAL_MESHES = [
+    ("fertility.off", 2000, 0.5),  # closed, genus 4
+    ("screwdriver.off", 2000, 0.5),  # CAD: sharp edges and a thin tip
+    ("camelhead.off", 1000, 0.9),  # open (one boundary loop)
+    ("decimated-knight.off", 250, 0.9),  # two input vertices per cluster
+]
+
+
+@requires_shared_meshes
+@pytest.mark.parametrize(("name", "n_clusters", "max_spacings"), REAL_MESHES)
+def test_real_meshes_keep_topology_and_features(name, n_clusters, max_spacings):
+    points, cells = shared_surface(name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RemeshTopologyWarning)
+        vertices, faces = remeshing(jnp.asarray(points), jnp.asarray(cells), n_clusters)
+    euler, boundary = _euler_and_boundary(cells)
+    out_euler, out_boundary = _euler_and_boundary(faces)
+    assert out_euler == euler and (out_boundary == 0) == (boundary == 0)
+    _check_surface_mesh(vertices, faces, points, cells, n_clusters, closed=boundary == 0)
+    assert _smallest_angle(vertices, faces) > 10.0
+    spacing = np.sqrt(quality.surface_area(points, cells) / n_clusters)
+    hausdorff = quality.hausdorff_distance(points, cells, vertices, faces, num_probes=20_000)
+    assert hausdorff < max_spacings * spacing
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,82 @@
+"""Plane quadrics of surface clusters: where the remesher puts a cluster's vertex and how it may move.
+
+Host NumPy, shared by both backends of :func:`geomjax.remeshing`. A cluster's centroid lies
+inside the surface's curvature, and its closest surface point falls short of a tip or a sharp
+edge, which the remesh then cuts off; a relaxation that moves vertices in the tangent plane
+slides them off creases. The quadric of a cluster's triangle planes knows both: its strong
+eigendirections are the directions in which the surface bends within the cluster (one for a
+flat patch, two along a crease, three at a corner or tip).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["ClusterQuadrics"]
+
+# A direction counts as constrained when its eigenvalue is at least this fraction of the largest.
+# Placement uses the lower threshold (it reaches for tips and creases), relaxation the higher one
+# (it keeps gently curved patches free to move in their tangent plane).
+PLACEMENT_THRESHOLD = 0.01
+MOVEMENT_THRESHOLD = 0.03
+# The 3x3 symmetric quadric's six entries, as index pairs.
+_ROWS, _COLUMNS = np.triu_indices(3)
+
+
+class ClusterQuadrics(NamedTuple):
+    """Per cluster: ``Q = sum a n n^T`` and ``b = sum a n (n . p)`` over its triangles' planes.
+
+    ``|x^T Q x - 2 b . x + c|`` is the area-weighted sum of squared distances from ``x`` to the
+    planes (normal ``n``, point ``p``, area ``a``); each triangle's area is split over its
+    corners' clusters.
+    """
+
+    quadric: np.ndarray  # (K, 3, 3) float64
+    rhs: np.ndarray  # (K, 3) float64
+    weights: np.ndarray  # (K, 3) eigenvalues of Q, ascending
+    basis: np.ndarray  # (K, 3, 3) the eigenvectors, as columns
+
+    @classmethod
+    def of(cls, x: np.ndarray, faces: np.ndarray, face_area: np.ndarray, labels: np.ndarray, num: int) -> ClusterQuadrics:
+        a, b, c = (x[faces[:, k]].astype(np.float64) for k in range(3))
+        normal = np.cross(b - a, c - a)
+        normal /= np.where(face_area > 0, 2 * face_area, 1.0)[:, None]
+        corner_labels = labels[faces].reshape(-1)
+        third = np.repeat(face_area / 3, 3)
+        normal3, offset3 = np.repeat(normal, 3, axis=0), np.repeat(np.sum(normal * a, axis=1), 3)
+        quadric = np.zeros((num, 3, 3))
+        for row, column in zip(_ROWS, _COLUMNS):
+            entry = np.bincount(corner_labels, weights=third * normal3[:, row] * normal3[:, column], minlength=num)
+            quadric[:, row, column] = quadric[:, column, row] = entry
+        rhs = np.stack([np.bincount(corner_labels, weights=third * offset3 * normal3[:, k], minlength=num) for k in range(3)], axis=1)
+        return cls(quadric, rhs, *np.linalg.eigh(quadric))
+
+    def snap(self, start: np.ndarray, limit: float) -> np.ndarray:
+        """``(K, 3)``: from ``start``, each cluster's least-squares point of its planes.
+
+        The step is taken in the eigenbasis of ``Q``, along the directions whose eigenvalue is
+        at least ``PLACEMENT_THRESHOLD`` times the largest (a flat cluster moves along its
+        normal only, a crease's across the crease, a tip's onto it); a step longer than
+        ``limit`` (nearly parallel planes, an ill-determined point) is not taken.
+        """
+        weights, basis = self.weights, self.basis
+        strong = weights > PLACEMENT_THRESHOLD * weights[:, -1:]
+        inverse = np.where(strong, 1.0 / np.where(strong, weights, 1.0), 0.0)
+        start = start.astype(np.float64)
+        residual = np.einsum("kji,kj->ki", basis, self.rhs - np.einsum("kij,kj->ki", self.quadric, start))
+        step = np.einsum("kij,kj->ki", basis, inverse * residual)
+        step[np.linalg.norm(step, axis=1) > limit] = 0.0
+        return start + step
+
+    def free_moves(self, moves: np.ndarray) -> np.ndarray:
+        """``moves (K, 3)`` restricted to each cluster's weak eigendirections (eigenvalue below
+        ``MOVEMENT_THRESHOLD`` times the largest): in the plane of a flat cluster, along a
+        crease, not at all at a corner or tip."""
+        free = self.weights < MOVEMENT_THRESHOLD * self.weights[:, -1:]
+        return np.einsum("kij,kj->ki", self.basis, free * np.einsum("kji,kj->ki", self.basis, moves))
+
+    def crease_strength(self) -> np.ndarray:
+        """``(K,)`` second eigenvalue over the largest: 0 on a flat cluster, up to 1 at a corner."""
+        return self.weights[:, 1] / np.maximum(self.weights[:, 2], np.finfo(np.float64).tiny)

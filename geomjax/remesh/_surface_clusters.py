@@ -1,0 +1,151 @@
+"""Clusters as regions of the surface: the remesher's graph Lloyd rounds and tear mending.
+
+Host NumPy and SciPy (``scipy.sparse.csgraph``), shared by both backends of
+:func:`geomjax.remeshing`. A cluster is a set of input vertices with one label; the remesh has
+a vertex per cluster and a triangle per input triangle whose corners carry three labels. That
+triangle set is a closed surface of the input's topology when every cluster is a disk on the
+surface and two clusters meet along at most one arc. Euclidean nearest-centroid clusters break
+this on real meshes (a cluster takes in vertices across a thin part); the functions here make
+each cluster connected on the surface and mend the two remaining defects.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
+
+from ._triangulation import distinct_triangles, half_edges
+
+__all__ = ["MeshEdges", "cluster_means", "connected_clusters", "mend_tears"]
+
+
+class MeshEdges(NamedTuple):
+    """The undirected edges of a triangle mesh, computed once per remesh.
+
+    Attributes:
+        graph: ``(V, V)`` symmetric CSR matrix of edge lengths (at least ``tiny``: SciPy reads a
+            stored zero as no edge, and duplicated vertices must stay connected).
+        boundary: indices of the vertices on an edge of a single triangle.
+        euler: Euler characteristic ``V' - E + F`` of the vertices the triangles use.
+    """
+
+    graph: sparse.csr_matrix
+    boundary: np.ndarray
+    euler: int
+
+    @classmethod
+    def of(cls, x: np.ndarray, faces: np.ndarray) -> MeshEdges:
+        num = x.shape[0]
+        tail, head, key = half_edges(faces, num)
+        _, first, counts = np.unique(key, return_index=True, return_counts=True)
+        a, b = tail[first], head[first]
+        length = np.maximum(np.linalg.norm(x[a].astype(np.float64) - x[b], axis=1), np.finfo(np.float64).tiny)
+        graph = sparse.csr_matrix((np.concatenate([length, length]), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(num, num))
+        single = first[counts == 1]
+        boundary = np.unique(np.concatenate([tail[single], head[single]]))
+        used = np.count_nonzero(np.bincount(faces.reshape(-1), minlength=num))
+        return cls(graph, boundary, int(used - first.size + faces.shape[0]))
+
+
+def connected_clusters(edges: MeshEdges, x, mass, centroids, labels, rounds: int):
+    """Lloyd rounds in which each cluster is a region of the surface, not of space.
+
+    Every vertex joins the cluster whose seed (the member closest to its centroid) is nearest
+    along the mesh's edges (multi-source Dijkstra), so each cluster is connected through its own
+    vertices; centroids then move to their clusters' mass-weighted means, ``rounds`` times, and
+    a last assignment gives the labels. Returns ``(centroids, labels)``.
+    """
+    for round_index in range(rounds + 1):
+        seeds = _cluster_seeds(x, centroids, labels)
+        labels, _ = _graph_labels(edges.graph, seeds, labels[seeds], labels)
+        if round_index < rounds:
+            centroids = cluster_means(x, mass, labels, centroids)
+    return centroids, labels
+
+
+def mend_tears(edges: MeshEdges, x, faces, mass, centroids, labels, max_rounds: int):
+    """Reassign clusters until their relabelled triangles have no fin and no pinch.
+
+    * A *fin*: a cluster C squeezed between two others A and B (a thin strip across their
+      border) meets them at two junctions of opposite orientation. One is dropped as a
+      duplicate; the other is a triangle whose two edges at C have no second triangle, away
+      from any boundary of the input. C gives up its seed (its vertices join the nearest
+      remaining seeds), so that A and B meet along one arc.
+    * A *pinch*: two clusters meeting along two separate arcs (both wrap around a thin part),
+      so that their edge has more than two triangles. The larger is split by a new seed at its
+      vertex farthest from its seed; to keep the number of clusters, the smallest cluster not
+      involved gives up its seed and label.
+
+    At most ``max_rounds`` rounds; fins go first (a fin also crowds an edge). Returns
+    ``(centroids, labels)``; what is left shows in the remesh's topology check.
+    """
+    num = centroids.shape[0]
+    for _ in range(max_rounds):
+        triangles = distinct_triangles(labels[faces])
+        if triangles.shape[0] == 0:
+            break
+        tail, head, key = half_edges(triangles, num)
+        _, first, counts = np.unique(key, return_index=True, return_counts=True)
+        on_boundary = np.zeros(num, bool)
+        on_boundary[labels[edges.boundary]] = True
+        single = first[counts == 1]
+        torn = single[~(on_boundary[tail[single]] & on_boundary[head[single]])]
+        fins = np.flatnonzero(np.bincount(np.concatenate([tail[torn], head[torn]]), minlength=num) >= 2)
+        crowded = first[counts > 2]
+        if fins.size == 0 and crowded.size == 0:
+            break
+        seeds = _cluster_seeds(x, centroids, labels)
+        seed_of = np.full(num, -1, np.int64)
+        seed_of[labels[seeds]] = seeds
+        seed_of[fins] = -1
+        if fins.size == 0:
+            _, distance = _graph_labels(edges.graph, seeds, labels[seeds], labels)
+            sizes = np.bincount(labels, weights=mass, minlength=num)
+            pairs = np.stack([tail[crowded], head[crowded]], axis=1)
+            involved = np.zeros(num, bool)
+            involved[pairs.reshape(-1)] = True
+            split = np.unique(pairs)
+            donors = [c for c in np.argsort(sizes, kind="stable") if seed_of[c] >= 0 and not involved[c]]
+            for cluster, donor in zip(split, donors):
+                members = np.flatnonzero(labels == cluster)
+                reach = np.where(np.isfinite(distance[members]), distance[members], -1.0)
+                seed_of[donor] = members[np.argmax(reach)]
+        live = np.flatnonzero(seed_of >= 0)
+        labels, _ = _graph_labels(edges.graph, seed_of[live], live, labels)
+        centroids = cluster_means(x, mass, labels, centroids)
+    return centroids, labels
+
+
+def _cluster_seeds(x, centroids, labels) -> np.ndarray:
+    """Per non-empty cluster (in label order), the member vertex closest to its centroid."""
+    distance2 = np.sum((x - centroids[labels]) ** 2, axis=1)
+    order = np.lexsort((distance2, labels))
+    first = np.ones(order.size, bool)
+    first[1:] = labels[order[1:]] != labels[order[:-1]]
+    return order[first]
+
+
+def _graph_labels(graph, seeds, seed_labels, labels) -> tuple[np.ndarray, np.ndarray]:
+    """Each vertex takes the label of the seed nearest along the edges: ``(labels, distance)``.
+
+    Vertices that no seed reaches (a piece of the mesh without a seed, or a vertex in no
+    triangle) keep their label and get an infinite distance.
+    """
+    distance, _, source = csgraph.dijkstra(graph, directed=False, indices=seeds, min_only=True, return_predecessors=True)
+    label_at = np.full(labels.shape[0], -1, np.int64)
+    label_at[seeds] = seed_labels
+    return np.where(source >= 0, label_at[np.maximum(source, 0)], labels).astype(labels.dtype), distance
+
+
+def cluster_means(x, mass, labels, centroids):
+    """Mass-weighted mean of each cluster's vertices (an empty cluster keeps its centroid)."""
+    num = centroids.shape[0]
+    total = np.bincount(labels, weights=mass, minlength=num)
+    sums = np.stack([np.bincount(labels, weights=mass * x[:, k], minlength=num) for k in range(3)], axis=1)
+    occupied = total > 0
+    centroids = centroids.copy()
+    centroids[occupied] = (sums[occupied] / total[occupied, None]).astype(x.dtype)
+    return centroids

@@ -1,0 +1,393 @@
+"""Triangle-set operations of the remesher: relabelled triangles, clean-up, flips and relaxation.
+
+Host NumPy, shared by both backends of :func:`geomjax.remeshing`. Triangles are ``(F, 3)``
+integer arrays of vertex indices, positions ``(V, 3)`` arrays; an edge is keyed
+``min * stride + max`` with ``stride`` above every vertex index.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = [
+    "boundary_vertices",
+    "collapse_poor_triangles",
+    "degenerate_vertices",
+    "delaunay_flips",
+    "distinct_triangles",
+    "drop_crowded_edges",
+    "half_edges",
+    "min_angles",
+    "nondegenerate",
+    "overturned_vertices",
+    "relaxation_targets",
+    "remove_degree_three",
+    "topology",
+]
+
+# A triangle whose doubled area is below this many dtype epsilons of its squared edge lengths
+# has zero area up to rounding (coincident or collinear projected vertices).
+DEGENERATE_EPSILONS = 4.0
+FLIP_ROUNDS = 32  # rounds of parallel Delaunay edge flips per flip pass
+FLIP_TOLERANCE = 1e-6  # radians: opposite angles must exceed pi by this much (co-circular quads stay)
+# Edges between triangles whose normals differ by more than this are creases of the surface:
+# flipping them would cut the crease, so they stay (a flat pair flips at any shape).
+FLIP_MAX_DIHEDRAL_DEGREES = 20.0
+# A degree-three vertex is removed only when it lies this close to the plane of its three
+# neighbours (relative to their longest edge): further out it is a tip of the surface.
+DEGREE_THREE_MAX_HEIGHT = 0.1
+# Triangles with a smaller angle (degrees) lose their shortest edge in the final clean-up.
+MIN_ANGLE_DEGREES = 12.0
+COLLAPSE_ROUNDS = 4
+
+
+def half_edges(triangles: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per half-edge (3 per triangle, in order): tail, head and the undirected edge key
+    ``min * stride + max`` (``stride`` above every vertex index)."""
+    tail = triangles.reshape(-1).astype(np.int64)
+    head = np.roll(triangles, -1, axis=1).reshape(-1).astype(np.int64)
+    return tail, head, np.minimum(tail, head) * stride + np.maximum(tail, head)
+
+
+def distinct_triangles(labelled: np.ndarray) -> np.ndarray:
+    """Relabelled triangles -> those with three distinct labels, each once (in any orientation)."""
+    distinct = (labelled[:, 0] != labelled[:, 1]) & (labelled[:, 1] != labelled[:, 2]) & (labelled[:, 0] != labelled[:, 2])
+    triangles = labelled[distinct]
+    if triangles.shape[0] == 0:
+        return triangles
+    # Duplicates in any orientation: keep the first occurrence (lexsort is stable).
+    ordered = np.sort(triangles, axis=1)
+    order = np.lexsort(ordered.T[::-1])
+    ordered = ordered[order]
+    first = np.ones(order.size, bool)
+    first[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    return triangles[np.sort(order[first])]
+
+
+def degenerate_vertices(triangles: np.ndarray, positions: np.ndarray, num_vertices: int) -> np.ndarray:
+    """``(num_vertices,)`` bool: the corners of triangles of zero area (up to rounding)."""
+    keep, _ = _area_check(triangles, positions)
+    mask = np.zeros(num_vertices, bool)
+    mask[triangles[~keep].reshape(-1)] = True
+    return mask
+
+
+def nondegenerate(triangles: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles of non-zero area (up to rounding) and their doubled areas."""
+    keep, area2 = _area_check(triangles, positions)
+    return triangles[keep], area2[keep]
+
+
+def _area_check(triangles: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle: non-zero area up to rounding (bool), and the doubled area."""
+    a, b, c = (positions[triangles[:, k]] for k in range(3))
+    ab, ac, bc = b - a, c - a, c - b
+    area2 = np.linalg.norm(np.cross(ab, ac), axis=1)
+    edge2 = np.sum(ab * ab + ac * ac + bc * bc, axis=1)
+    return area2 > DEGENERATE_EPSILONS * np.finfo(positions.dtype).eps * edge2, area2
+
+
+def drop_crowded_edges(triangles: np.ndarray, area2: np.ndarray) -> np.ndarray:
+    """Remove triangles until every edge has at most two.
+
+    Each round removes, for every edge with more than two triangles, the triangle touching the
+    most such edges (then the smallest, then the lowest index).
+    """
+    index = np.arange(triangles.shape[0])
+    while triangles.shape[0]:
+        _, _, key = half_edges(triangles, int(triangles.max()) + 1)
+        owner = np.repeat(np.arange(triangles.shape[0]), 3)
+        _, edge, counts = np.unique(key, return_inverse=True, return_counts=True)
+        crowded = counts[edge] > 2
+        if not np.any(crowded):
+            break
+        touching = np.bincount(owner[crowded], minlength=triangles.shape[0])
+        candidates = np.flatnonzero(crowded)
+        # Per crowded edge, the first after sorting by (edge, -touching, area, index).
+        faces = owner[candidates]
+        ranked = candidates[np.lexsort((index[faces], area2[faces], -touching[faces], edge[candidates]))]
+        head = np.ones(ranked.size, bool)
+        head[1:] = edge[ranked[1:]] != edge[ranked[:-1]]
+        keep = np.ones(triangles.shape[0], bool)
+        keep[owner[ranked[head]]] = False
+        triangles, area2, index = triangles[keep], area2[keep], index[keep]
+    return triangles
+
+
+def _corner_angle(apex: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    u, v = a - apex, b - apex
+    return np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), np.sum(u * v, axis=-1))
+
+
+def min_angles(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``(F,)`` smallest angle of each triangle, in degrees."""
+    x = positions.astype(np.float64)
+    a, b, c = (x[triangles[:, k]] for k in range(3))
+    return np.degrees(np.minimum(np.minimum(_corner_angle(a, b, c), _corner_angle(b, c, a)), _corner_angle(c, a, b)))
+
+
+def delaunay_flips(positions: np.ndarray, triangles: np.ndarray, rounds: int = FLIP_ROUNDS) -> np.ndarray:
+    """Flip interior edges whose opposite angles sum to more than pi (Delaunay on the surface).
+
+    Only edges shared by exactly two consistently oriented triangles are flipped, never onto an
+    existing edge, never leaving a vertex with fewer than three edges, and never folding the
+    pair (both new triangles must face like the old ones). Each round flips an independent set
+    of edges (no two share a triangle), the most violating first, for at most ``rounds`` rounds.
+    """
+    x = positions.astype(np.float64)
+    triangles = triangles.copy()
+    stride = np.int64(positions.shape[0])
+    owner = np.repeat(np.arange(triangles.shape[0]), 3)
+    for _ in range(rounds):
+        tail, head, key = half_edges(triangles, int(stride))
+        opposite = np.roll(triangles, -2, axis=1).reshape(-1)
+        order = np.argsort(key, kind="stable")
+        sorted_key = key[order]
+        starts = np.flatnonzero(np.concatenate([[True], sorted_key[1:] != sorted_key[:-1]]))
+        counts = np.diff(np.append(starts, key.size))
+        edges = sorted_key[starts]
+        paired = starts[counts == 2]
+        first, second = order[paired], order[paired + 1]
+        consistent = (tail[first] == head[second]) & (head[first] == tail[second])
+        first, second = first[consistent], second[consistent]
+        u, v, p, q = tail[first], head[first], opposite[first], opposite[second]
+        excess = _corner_angle(x[p], x[u], x[v]) + _corner_angle(x[q], x[u], x[v]) - np.pi
+        violating = excess > FLIP_TOLERANCE
+        first, second, u, v, p, q, excess = (a[violating] for a in (first, second, u, v, p, q, excess))
+        new_keys = np.minimum(p, q) * stride + np.maximum(p, q)
+        slot = np.minimum(np.searchsorted(edges, new_keys), edges.size - 1)
+        degree = np.bincount(np.concatenate([edges // stride, edges % stride]), minlength=int(stride))
+        normal_u, normal_v = _unit(np.cross(x[v] - x[u], x[p] - x[u])), _unit(np.cross(x[u] - x[v], x[q] - x[v]))
+        old_normal = normal_u + normal_v
+        unfolded = (np.sum(np.cross(x[q] - x[u], x[p] - x[u]) * old_normal, axis=1) > 0) & (np.sum(np.cross(x[v] - x[q], x[p] - x[q]) * old_normal, axis=1) > 0)
+        # How far the new diagonal pq passes from the old one uv, relative to its length: 0 for a
+        # flat pair or a sliver (p near uv), tan(dihedral / 2) / 2 across a symmetric crease.
+        across = np.cross(x[v] - x[u], x[q] - x[p])
+        gap = np.abs(np.sum((x[p] - x[u]) * across, axis=1)) / np.maximum(np.linalg.norm(across, axis=1), np.finfo(np.float64).tiny)
+        flat = gap <= 0.5 * math.tan(math.radians(FLIP_MAX_DIHEDRAL_DEGREES) / 2) * np.linalg.norm(x[q] - x[p], axis=1)
+        candidates = np.flatnonzero((edges[slot] != new_keys) & (degree[u] > 3) & (degree[v] > 3) & unfolded & flat)
+        if candidates.size == 0:
+            break
+        rank = np.empty(candidates.size, np.int64)
+        rank[np.argsort(-excess[candidates], kind="stable")] = np.arange(candidates.size)
+        face_a, face_b = owner[first[candidates]], owner[second[candidates]]
+        best = np.full(triangles.shape[0], candidates.size)
+        np.minimum.at(best, face_a, rank)
+        np.minimum.at(best, face_b, rank)
+        chosen = (best[face_a] == rank) & (best[face_b] == rank)
+        # Two flips of one round must not create the same edge.
+        chosen &= _first_occurrence(np.where(chosen, new_keys[candidates], -1 - np.arange(candidates.size)))
+        c = candidates[chosen]
+        triangles[owner[first[c]]] = np.stack([u[c], q[c], p[c]], axis=1)
+        triangles[owner[second[c]]] = np.stack([q[c], v[c], p[c]], axis=1)
+    return triangles
+
+
+def _first_occurrence(values: np.ndarray) -> np.ndarray:
+    _, first = np.unique(values, return_index=True)
+    mask = np.zeros(values.shape, bool)
+    mask[first] = True
+    return mask
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(norm > 0, norm, 1.0)
+
+
+def boundary_vertices(triangles: np.ndarray, num_vertices: int) -> np.ndarray:
+    """``(num_vertices,)`` bool: vertices on an edge of only one triangle."""
+    tail, head, key = half_edges(triangles, num_vertices)
+    _, edge, counts = np.unique(key, return_inverse=True, return_counts=True)
+    boundary = counts[edge] == 1
+    fixed = np.zeros(num_vertices, bool)
+    fixed[tail[boundary]] = True
+    fixed[head[boundary]] = True
+    return fixed
+
+
+def relaxation_targets(positions: np.ndarray, triangles: np.ndarray, vertex_rho: np.ndarray | None, fixed: np.ndarray) -> np.ndarray:
+    """One optimal-Delaunay-triangulation step: each vertex to the mass-weighted mean of the
+    circumcentres of its triangles.
+
+    A triangle's mass is its area (times its mean density). The circumcentre of an obtuse
+    triangle, which can lie far outside it, is replaced by the midpoint of its longest edge (the
+    closest point of the triangle to it). ``fixed`` vertices (on a boundary) and vertices in no
+    triangle stay where they are.
+    """
+    x = positions.astype(np.float64)
+    a, b, c = (x[triangles[:, k]] for k in range(3))
+    ab, ac = b - a, c - a
+    normal = np.cross(ab, ac)
+    normal2 = np.sum(normal * normal, axis=1)
+    ab2, ac2, bc2 = np.sum(ab * ab, axis=1), np.sum(ac * ac, axis=1), np.sum((c - b) ** 2, axis=1)
+    safe = np.where(normal2 > 0, normal2, 1.0)
+    centre = a + (np.cross(normal, ab) * ac2[:, None] + np.cross(ac, normal) * ab2[:, None]) / (2 * safe[:, None])
+    # Obtuse at a (bc^2 > ab^2 + ac^2) puts the circumcentre beyond edge bc, and so on.
+    longest = np.argmax(np.stack([bc2 - ab2 - ac2, ac2 - ab2 - bc2, ab2 - ac2 - bc2], axis=1), axis=1)
+    obtuse = np.max(np.stack([bc2 - ab2 - ac2, ac2 - ab2 - bc2, ab2 - ac2 - bc2], axis=1), axis=1) >= 0
+    midpoints = np.stack([(b + c) / 2, (a + c) / 2, (a + b) / 2], axis=1)[np.arange(a.shape[0]), longest]
+    centre = np.where(obtuse[:, None], midpoints, centre)
+    mass = 0.5 * np.sqrt(normal2)
+    if vertex_rho is not None:
+        mass = mass * vertex_rho[triangles].mean(axis=1)
+    num = x.shape[0]
+    corners = triangles.reshape(-1)
+    total = np.bincount(corners, weights=np.repeat(mass, 3), minlength=num)
+    sums = np.stack([np.bincount(corners, weights=np.repeat(mass * centre[:, k], 3), minlength=num) for k in range(3)], axis=1)
+    move = (total > 0) & ~fixed
+    out = x.copy()
+    out[move] = sums[move] / total[move, None]
+    return out
+
+
+def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``(V,)`` bool: vertices of triangles whose normal turns by more than 90 degrees."""
+
+    def normals(x):
+        return np.cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
+
+    turned = np.sum(normals(old.astype(np.float64)) * normals(new.astype(np.float64)), axis=1) <= 0
+    mask = np.zeros(old.shape[0], bool)
+    mask[triangles[turned].reshape(-1)] = True
+    return mask
+
+
+def remove_degree_three(positions: np.ndarray, triangles: np.ndarray, num_vertices: int) -> np.ndarray:
+    """Replace the three triangles around each interior vertex of degree three by one.
+
+    Such a vertex sits inside the triangle of its neighbours and makes three poor triangles
+    (their angles at it sum to 360 degrees); flips cannot remove it. Its star becomes the
+    triangle of its neighbours, oriented like the star (the Euler characteristic is kept), unless
+    that triangle exists already (a tetrahedron). Vertices are removed in independent sets (no
+    two sharing a triangle), until none is left.
+    """
+    while True:
+        fixed = boundary_vertices(triangles, num_vertices)
+        corners = triangles.reshape(-1)
+        incident = np.bincount(corners, minlength=num_vertices)
+        tail, head, key = half_edges(triangles, num_vertices)
+        _, first = np.unique(key, return_index=True)
+        degree = np.bincount(np.concatenate([tail[first], head[first]]), minlength=num_vertices)
+        candidate = (incident == 3) & (degree == 3) & ~fixed
+        # The triangles around each candidate; a triangle with two candidates is left alone.
+        owner = np.repeat(np.arange(triangles.shape[0]), 3)
+        hit = candidate[corners]
+        shared = np.bincount(owner[hit], minlength=triangles.shape[0]) > 1
+        blocked = np.zeros(num_vertices, bool)
+        blocked[corners[hit & shared[owner]]] = True
+        centre = np.flatnonzero(candidate & ~blocked)
+        if centre.size == 0:
+            return triangles
+        slots = np.flatnonzero(hit & ~shared[owner])
+        order = np.argsort(corners[slots], kind="stable")
+        star_faces = owner[slots[order]].reshape(-1, 3)  # (n, 3): the triangles of each centre
+        star_slots = (slots[order] % 3).reshape(-1, 3)
+        # The first triangle rotated to (centre, a, b); the third neighbour d is the one of the
+        # second triangle that is neither the centre nor a nor b.
+        face = triangles[star_faces[:, 0]]
+        k = star_slots[:, 0]
+        rows = np.arange(face.shape[0])
+        a, b = face[rows, (k + 1) % 3], face[rows, (k + 2) % 3]
+        other = triangles[star_faces[:, 1]]
+        d = np.max(np.where((other == centre[:, None]) | (other == a[:, None]) | (other == b[:, None]), -1, other), axis=1)
+        link = np.stack([a, b, d], axis=1)
+        existing = {tuple(t) for t in np.sort(triangles, axis=1).tolist()}
+        new = np.array([tuple(t) not in existing for t in np.sort(link, axis=1).tolist()], bool)
+        # A vertex standing out of its link's plane is a tip of the surface: it stays.
+        x = positions.astype(np.float64)
+        la, lb, ld = x[a], x[b], x[d]
+        height = np.abs(np.sum((x[centre] - la) * _unit(np.cross(lb - la, ld - la)), axis=1))
+        longest = np.sqrt(np.max(np.stack([np.sum((lb - la) ** 2, 1), np.sum((ld - lb) ** 2, 1), np.sum((la - ld) ** 2, 1)]), axis=0))
+        new &= height <= DEGREE_THREE_MAX_HEIGHT * longest
+        if not np.any(new):
+            return triangles
+        keep = np.ones(triangles.shape[0], bool)
+        keep[star_faces[new].reshape(-1)] = False
+        triangles = np.concatenate([triangles[keep], link[new].astype(triangles.dtype)])
+
+
+def collapse_poor_triangles(positions: np.ndarray, triangles: np.ndarray, fixed: np.ndarray, strength: np.ndarray) -> np.ndarray:
+    """Collapse the shortest edge of each triangle whose smallest angle is below ``MIN_ANGLE_DEGREES``.
+
+    The few needles and caps that flips and moves leave (a vertex pinned on a crease or a tip,
+    or next to the boundary) go by an edge collapse: the endpoint with the weaker feature
+    (``strength``, the crease or corner weight of its cluster) joins the other, which stays
+    where it is, so features keep their vertices. A collapse is made only when it keeps the
+    topology (the link condition: the edge's endpoints share exactly its opposite vertices),
+    turns no triangle over and leaves every new triangle better than the one it removes;
+    ``fixed`` (boundary) vertices never move.
+    """
+    x = positions.astype(np.float64)
+    triangles = triangles.copy()
+    alive = np.ones(triangles.shape[0], bool)
+    for _ in range(COLLAPSE_ROUNDS):
+        live = np.flatnonzero(alive)
+        angles = min_angles(positions, triangles[live])
+        poor = live[np.argsort(angles)][np.sort(angles) < MIN_ANGLE_DEGREES]
+        if poor.size == 0:
+            break
+        # The triangles around the poor triangles' corners: all that the collapses below read.
+        corners = np.unique(triangles[poor])
+        star: dict[int, set[int]] = {int(v): set() for v in corners}
+        near = live[np.any(np.isin(triangles[live], corners), axis=1)]
+        for face, row in zip(near.tolist(), triangles[near].tolist()):
+            for vertex in row:
+                if vertex in star:
+                    star[vertex].add(face)
+        touched: set[int] = set()
+        for face in poor:
+            if not alive[face] or int(face) in touched:
+                continue
+            collapse = _first_collapse(x, triangles, star, triangles[face], fixed, strength, touched)
+            if collapse is not None:
+                moved, new, shared = collapse
+                triangles[moved] = new
+                alive[shared] = False
+                touched.update(moved, shared)
+    return triangles[alive]
+
+
+def _first_collapse(x, triangles, star, corners, fixed, strength, touched):
+    """The first admissible collapse of an edge of the triangle ``corners``: ``(moved faces,
+    their new corners, removed faces)``, or None.
+
+    Edges are tried from the shortest; on each, the endpoint with the weaker feature goes
+    first, the other second; a ``fixed`` endpoint never goes.
+    """
+    poor_angle = min_angles(x, corners[None])[0]
+    lengths = [np.sum((x[corners[(k + 1) % 3]] - x[corners[k]]) ** 2) for k in range(3)]
+    for k in np.argsort(lengths, kind="stable"):
+        a, b = int(corners[k]), int(corners[(k + 1) % 3])
+        for gone, keep in sorted([(a, b), (b, a)], key=lambda pair: strength[pair[0]]):
+            if fixed[gone] or touched & (star[gone] | star[keep]):
+                continue
+            shared = star[gone] & star[keep]
+            # The link condition: the endpoints' common neighbours are the edge's opposite corners.
+            common = (_neighbours(triangles, star[gone]) - {gone}) & (_neighbours(triangles, star[keep]) - {keep})
+            if common != _neighbours(triangles, shared) - {a, b}:
+                continue
+            moved = sorted(star[gone] - shared)
+            if not moved:  # all of its triangles are on the edge: not a surface around it
+                continue
+            old = triangles[moved]
+            new = np.where(old == gone, keep, old)
+            old_normal = np.cross(x[old[:, 1]] - x[old[:, 0]], x[old[:, 2]] - x[old[:, 0]])
+            new_normal = np.cross(x[new[:, 1]] - x[new[:, 0]], x[new[:, 2]] - x[new[:, 0]])
+            if np.all(np.sum(old_normal * new_normal, axis=1) > 0) and np.min(min_angles(x, new)) > poor_angle:
+                return moved, new, sorted(shared)
+    return None
+
+
+def _neighbours(triangles: np.ndarray, faces: set[int]) -> set[int]:
+    """The vertices of ``faces``."""
+    return {int(vertex) for face in faces for vertex in triangles[face]}
+
+
+def topology(triangles: np.ndarray) -> tuple[int, int]:
+    """``(Euler characteristic, number of boundary edges)`` of the vertices used by ``triangles``."""
+    _, _, key = half_edges(triangles, int(triangles.max()) + 1)
+    _, counts = np.unique(key, return_counts=True)
+    return np.unique(triangles).size - counts.size + triangles.shape[0], int(np.sum(counts == 1))
