@@ -256,20 +256,38 @@ def closest_faces(bvh: MeshBVH, points: Float[Array, "*batch 3"], max_distance: 
         raise TypeError(f"bvh must be a MeshBVH (see build_bvh), got {type(bvh).__name__}")
     points = checked_query_points("points", points, bvh.vertices, vertices_name="mesh vertices")
     limit = _max_distance(max_distance, points.dtype)
+    vertices = jax.lax.stop_gradient(bvh.vertices)
+    # A MeshBVH made for ray casts only carries no tree: build one in the call.
+    tree = bvh.closest_tree if bvh.closest_tree is not None else (bvh_vertices32(vertices), bvh.faces.reshape(-1))
+    return search_closest_faces(tree, vertices, bvh.faces, points, limit)
+
+
+def closest_face_tree(op_name: str, vertices: jax.Array, faces: np.ndarray) -> tuple:
+    """The oriented-box tree of :func:`build_bvh` alone, for closest-face searches only (no Warp
+    mesh: what the eager host algorithms need), on the device of ``vertices``.
+
+    ``vertices`` ``(V, 3)`` concrete, ``faces`` ``(F, 3)`` validated indices. ``ValueError``
+    (``op_name``'s) for vertices that are not finite or beyond the float32 range.
+    """
+    from warp_ffi.bvh import closest_tree
+
+    return closest_tree(_concrete_vertices(op_name, vertices), np.asarray(faces).reshape(-1), _warp_device(vertices))
+
+
+def search_closest_faces(tree: tuple, vertices: jax.Array, faces: jax.Array, points: jax.Array, limit: float = float("inf")) -> jax.Array:
+    """:func:`closest_faces` on an oriented-box ``tree`` of ``(vertices, faces)``, for validated
+    ``points`` of the vertices' dtype (``(..., 3)``) and a real ``limit``."""
     shape = points.shape[:-1]
     flat = jax.lax.stop_gradient(points.reshape(-1, 3))
     if flat.shape[0] == 0:
         return jnp.zeros(shape, jnp.int32)
     from warp_ffi.bvh import point_faces
 
-    vertices = jax.lax.stop_gradient(bvh.vertices)
-    # A MeshBVH made for ray casts only carries no tree: build one in the call.
-    mesh = bvh.closest_tree if bvh.closest_tree is not None else (bvh_vertices32(vertices), bvh.faces.reshape(-1))
-    faces, _ = point_faces(
-        mesh, flat, vertices, bvh.faces, jnp.asarray(limit, flat.dtype), _extent(vertices),
+    found, _ = point_faces(
+        tree, flat, vertices, faces, jnp.asarray(limit, flat.dtype), _extent(vertices),
         sign_mode="none", exact=True,
     )  # fmt: skip
-    return faces.reshape(shape)
+    return found.reshape(shape)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -56,17 +56,18 @@ def connected_clusters(edges: MeshEdges, x, mass, centroids, labels, rounds: int
     Every vertex joins the cluster whose seed (the member closest to its centroid) is nearest
     along the mesh's edges (multi-source Dijkstra), so each cluster is connected through its own
     vertices; centroids then move to their clusters' mass-weighted means, ``rounds`` times, and
-    a last assignment gives the labels. Returns ``(centroids, labels)``.
+    a last assignment gives the labels. Returns ``(centroids, labels, distance)``: the distance
+    of each vertex from its cluster's seed along the edges.
     """
     for round_index in range(rounds + 1):
         seeds = _cluster_seeds(x, centroids, labels)
-        labels, _ = _graph_labels(edges.graph, seeds, labels[seeds], labels)
+        labels, distance = _graph_labels(edges.graph, seeds, labels[seeds], labels)
         if round_index < rounds:
             centroids = cluster_means(x, mass, labels, centroids)
-    return centroids, labels
+    return centroids, labels, distance
 
 
-def mend_tears(edges: MeshEdges, x, faces, mass, centroids, labels, max_rounds: int):
+def mend_tears(edges: MeshEdges, x, faces, mass, centroids, labels, distance, max_rounds: int):
     """Reassign clusters until their relabelled triangles have no fin and no pinch.
 
     * A *fin*: a cluster C squeezed between two others A and B (a thin strip across their
@@ -75,9 +76,9 @@ def mend_tears(edges: MeshEdges, x, faces, mass, centroids, labels, max_rounds: 
       from any boundary of the input. C gives up its seed (its vertices join the nearest
       remaining seeds), so that A and B meet along one arc.
     * A *pinch*: two clusters meeting along two separate arcs (both wrap around a thin part),
-      so that their edge has more than two triangles. The larger is split by a new seed at its
-      vertex farthest from its seed; to keep the number of clusters, the smallest cluster not
-      involved gives up its seed and label.
+      so that their edge has more than two triangles. Both are split by a new seed at their
+      vertex farthest from their seed (``distance``, from the last assignment); to keep the
+      number of clusters, the smallest clusters not involved give up their seeds and labels.
 
     At most ``max_rounds`` rounds; fins go first (a fin also crowds an edge). Returns
     ``(centroids, labels)``; what is left shows in the remesh's topology check.
@@ -102,7 +103,6 @@ def mend_tears(edges: MeshEdges, x, faces, mass, centroids, labels, max_rounds: 
         seed_of[labels[seeds]] = seeds
         seed_of[fins] = -1
         if fins.size == 0:
-            _, distance = _graph_labels(edges.graph, seeds, labels[seeds], labels)
             sizes = np.bincount(labels, weights=mass, minlength=num)
             pairs = np.stack([tail[crowded], head[crowded]], axis=1)
             involved = np.zeros(num, bool)
@@ -114,15 +114,16 @@ def mend_tears(edges: MeshEdges, x, faces, mass, centroids, labels, max_rounds: 
                 reach = np.where(np.isfinite(distance[members]), distance[members], -1.0)
                 seed_of[donor] = members[np.argmax(reach)]
         live = np.flatnonzero(seed_of >= 0)
-        labels, _ = _graph_labels(edges.graph, seed_of[live], live, labels)
+        labels, distance = _graph_labels(edges.graph, seed_of[live], live, labels)
         centroids = cluster_means(x, mass, labels, centroids)
     return centroids, labels
 
 
 def _cluster_seeds(x, centroids, labels) -> np.ndarray:
     """Per non-empty cluster (in label order), the member vertex closest to its centroid."""
-    distance2 = np.sum((x - centroids[labels]) ** 2, axis=1)
-    order = np.lexsort((distance2, labels))
+    distance2 = np.sum((x.astype(np.float64) - centroids[labels]) ** 2, axis=1)
+    # One float sort by label, then distance (scaled into [0, 1/2]): a third of a lexsort's time.
+    order = np.argsort(labels + distance2 / (2 * distance2.max() + np.finfo(np.float64).tiny))
     first = np.ones(order.size, bool)
     first[1:] = labels[order[1:]] != labels[order[:-1]]
     return order[first]

@@ -330,15 +330,15 @@ def remesh_with_sources(
     else:
         centroids, labels = _lloyd_jax(jax.device_put(x, device), jax.device_put(mass.astype(dtype), device), jax.device_put(centroids, device), max_iterations)
     index_dtype = jnp.int64 if np.dtype(mesh_indices.dtype) == np.int64 else jnp.int32
-    project = SurfaceProjector(vertices, faces, backend)
+    project = SurfaceProjector(vertices, faces, backend, _NAME)
     if reference:
         # 4. and 5. as the reference: projected centroids and their relabelled triangles.
         positions, source_faces, barycentric = project((centroids * scale + centre).astype(dtype))
         triangles = _surviving(distinct_triangles(labels[faces]), positions, "topology reconstruction")
         return _result(positions, triangles, source_faces, barycentric, index_dtype, device)
     edges = MeshEdges.of(x, faces)
-    centroids, labels = connected_clusters(edges, x, mass, centroids, labels, GRAPH_LLOYD_ROUNDS)
-    centroids, labels = mend_tears(edges, x, faces, mass, centroids, labels, TEAR_REPAIR_ROUNDS)
+    centroids, labels, distance = connected_clusters(edges, x, mass, centroids, labels, GRAPH_LLOYD_ROUNDS)
+    centroids, labels = mend_tears(edges, x, faces, mass, centroids, labels, distance, TEAR_REPAIR_ROUNDS)
 
     # 4. A point per cluster on the source surface, in the input frame.
     quadrics = ClusterQuadrics.of(x, faces, face_area, labels, n_clusters)

@@ -394,7 +394,7 @@ def _relax(samples: np.ndarray, surface: _Surface, search, r_max: float, limit: 
     """``RELAXATION_STEPS`` repulsion steps, each followed by projection onto the surface."""
     if RELAXATION_STEPS == 0:
         return samples
-    project = SurfaceProjector(surface.vertices, surface.faces, search.backend)
+    project = SurfaceProjector(surface.vertices, surface.faces, search.backend, _NAME)
     for _ in range(RELAXATION_STEPS):
         row_offsets, columns = search.neighbour_lists(samples, r_max, limit, cell, dims, _neighbour_capacity(samples.shape[0], target))
         rows = np.repeat(np.arange(samples.shape[0], dtype=np.int32), np.diff(row_offsets))

@@ -203,6 +203,8 @@ def test_errors():
         remeshing(vertices, faces, 10, farthest_point_oversampling=0)
     with pytest.raises(ValueError, match="zero area"):
         remeshing(jnp.zeros_like(vertices), faces, 10)
+    with pytest.raises(ValueError, match="remeshing: vertices must be finite and within the float32 range"):
+        remeshing(vertices * 1e300, faces, 10, implementation="warp")
     with pytest.raises(KeyError):
         remeshing(vertices, faces, 10, implementation="open3d")
     with pytest.raises(TypeError, match="eagerly"):
