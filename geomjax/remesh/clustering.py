@@ -44,7 +44,7 @@ _NAME = "remeshing"
 MAX_HASH_GRID_RESOLUTION = 256
 RADIUS_SCALE_CAP = 12.0  # the search radius never exceeds max(s, 12) cluster spacings
 MASS_FLOOR = float(np.finfo(np.float32).tiny)
-RELAXATION_ITERATIONS = 8  # surface relaxation rounds after the clustering (see remeshing)
+RELAXATION_ITERATIONS = 4  # surface relaxation rounds after the clustering (see remeshing)
 GRAPH_LLOYD_ROUNDS = 2  # Lloyd rounds on the surface's edge graph after the Euclidean ones
 TEAR_REPAIR_ROUNDS = 12  # rounds of mending fins and pinches of the cluster layout
 
@@ -134,7 +134,7 @@ def remeshing(
        back on the projected centroids), and while an edge has more than two triangles one
        triangle per such edge is removed (the one touching the most such edges, then the
        smallest, then the lowest index).
-    6. Relaxation on the surface (not in the reference, which stops at step 5): 8 rounds of one
+    6. Relaxation on the surface (not in the reference, which stops at step 5): 4 rounds of one
        round of Delaunay edge flips (an interior edge whose opposite angles sum to more than pi
        is flipped, unless that would fold the pair, duplicate an edge, leave a vertex with
        fewer than three edges, or cut a crease of more than 20 degrees) followed by an
@@ -246,7 +246,7 @@ def remesh_with_sources(
     ``rho = (vertex_density / max)^p``. :func:`remeshing` uses ``p = 1``;
     :meth:`geomjax.Mesh.remesh` uses ``p = 4`` for a ``resolution_field`` (a linear
     resolution ``r`` is a CVT density ``r^4``); ``relaxation_iterations`` (integer ``>= 0``,
-    default 8): the rounds of step 6; and ``reference`` (bool, default False): True runs the
+    default 4): the rounds of step 6; and ``reference`` (bool, default False): True runs the
     reference's algorithm (Euclidean clusters, projected centroids, steps 1 to 5 only). Returns a
     :class:`RemeshResult`.
 

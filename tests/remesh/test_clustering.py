@@ -113,27 +113,22 @@ def test_more_iterations_and_clusters():
 
 @pytest.mark.parametrize("implementation", BACKENDS)
 def test_density_puts_more_vertices_where_it_is_larger(implementation):
-    # Smooth at the cluster scale: the relaxation, which pulls vertices towards the density,
-    # leaves the vertices of a surface rough at that scale where the roughness puts them.
-    vertices, faces = _jittered_sphere(3, jitter=0.01)
+    # About 9 input vertices per cluster: on coarser inputs the clusters are too few vertices to
+    # follow the density (4 per cluster: 1.1x to 1.2x only, the reference algorithm's too).
+    vertices, faces = _jittered_sphere(4, jitter=0.01)
     z = np.asarray(vertices)[:, 2]
     density = jnp.asarray(np.where(z > 0, 4.0, 1.0))
-    out_vertices, out_faces = remeshing(vertices, faces, 150, vertex_density=density, implementation=implementation)
-    _check_surface_mesh(out_vertices, out_faces, vertices, faces, 150, closed=True)
+    out_vertices, out_faces = remeshing(vertices, faces, 300, vertex_density=density, implementation=implementation)
+    _check_surface_mesh(out_vertices, out_faces, vertices, faces, 300, closed=True)
     upper = np.sum(np.asarray(out_vertices)[:, 2] > 0)
-    # A 2-D CVT has point density ~ sqrt(rho): 2x here, less with ~4 input vertices per cluster.
-    assert upper > 1.3 * (out_vertices.shape[0] - upper)
+    # A 2-D CVT has point density ~ sqrt(rho): 2x here.
+    assert upper > 1.7 * (out_vertices.shape[0] - upper)
     if implementation == "warp":
-        fine, fine_faces = _jittered_sphere(4)
-        fine_density = jnp.asarray(np.where(np.asarray(fine)[:, 2] > 0, 4.0, 1.0))
-        fine_out, _ = remeshing(fine, fine_faces, 300, vertex_density=fine_density)
-        upper = np.sum(np.asarray(fine_out)[:, 2] > 0)
-        assert upper > 1.7 * (fine_out.shape[0] - upper)
         # A constant density is uniform; scaling the density changes nothing.
-        uniform = remeshing(vertices, faces, 150, implementation=implementation)
-        constant = remeshing(vertices, faces, 150, vertex_density=jnp.full(z.shape, 3.0), implementation=implementation)
+        uniform = remeshing(vertices, faces, 300, implementation=implementation)
+        constant = remeshing(vertices, faces, 300, vertex_density=jnp.full(z.shape, 3.0), implementation=implementation)
         np.testing.assert_array_equal(uniform[0], constant[0])
-        scaled = remeshing(vertices, faces, 150, vertex_density=7 * density, implementation=implementation)
+        scaled = remeshing(vertices, faces, 300, vertex_density=7 * density, implementation=implementation)
         np.testing.assert_allclose(scaled[0], out_vertices, atol=1e-12)
 
 
