@@ -17,8 +17,9 @@ vertices, with a quarter of the counts), all in one process on the same data:
   surface), triangle shape (mean and minimum of the smallest angle and of the radius ratio
   ``2 r_in / r_circ``, fraction of triangles under 30 degrees) and the largest number of
   triangles on an edge. Targets: at least 5x faster than pyacvd, Hausdorff distance and mean
-  triangle quality no worse. The reference's algorithm (no relaxation,
-  ``relaxation_iterations=0`` of ``remesh_with_sources``) is shown for information.
+  triangle quality no worse. The reference's algorithm (``remesh_with_sources(...,
+  reference=True)``: Euclidean clusters, projected centroids, no relaxation) is shown for
+  information.
 
 Times are the best of ``--repeat`` warm runs (compilation excluded); ratios are baseline time
 over ours. Usage: ``python benchmarks/bench_sampling_remesh.py [--quick] [--repeat N]``
@@ -124,11 +125,11 @@ def remesh_rows(vertices, faces, count: int, repeat: int) -> list[dict]:
     rows = [{"case": f"remesh {count}", "method": "geomjax", "time_s": ours_s, **ours_row}]
 
     def reference_algorithm():
-        result = remesh_with_sources(points, cells, count, relaxation_iterations=0)
+        result = remesh_with_sources(points, cells, count, reference=True)
         return jax.block_until_ready((result.vertices, result.faces))
 
     plain_s = best_time(reference_algorithm, repeat=repeat)
-    rows.append({"case": f"remesh {count}", "method": "geomjax, no relaxation", "time_s": plain_s,
+    rows.append({"case": f"remesh {count}", "method": "geomjax, reference algorithm", "time_s": plain_s,
                  **_mesh_row(*reference_algorithm(), vertices, faces)})  # fmt: skip
 
     try:
