@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import contextlib
+import weakref
 from typing import no_type_check
 
 import jax
@@ -196,13 +197,49 @@ def build_mesh(vertices, faces_flat, *, winding_number: bool, device) -> wp.Mesh
     """A ``wp.Mesh`` on ``device`` from float32 ``(V, 3)`` vertices and flat int32 indices.
 
     ``vertices``/``faces_flat`` may be NumPy arrays (copied to ``device``) or Warp arrays (used
-    in place; they must outlive the mesh).
+    in place; they must outlive the mesh). The mesh's id is live (:func:`is_live_mesh`) until
+    it is freed.
     """
     if not isinstance(vertices, wp.array):
         vertices = wp.array(np.ascontiguousarray(vertices, np.float32), dtype=wp.vec3, device=device)
     if not isinstance(faces_flat, wp.array):
         faces_flat = wp.array(np.ascontiguousarray(faces_flat, np.int32), dtype=wp.int32, device=device)
-    return wp.Mesh(points=vertices, indices=faces_flat, support_winding_number=winding_number)
+    mesh = wp.Mesh(points=vertices, indices=faces_flat, support_winding_number=winding_number)
+    _LIVE_MESH_IDS.add(mesh.id)
+    # Runs when the mesh is collected, before Warp frees it, so a new mesh at the same address
+    # is registered after the old one left.
+    weakref.finalize(mesh, _LIVE_MESH_IDS.discard, mesh.id)
+    return mesh
+
+
+# The ids of the meshes build_mesh made that are not freed yet. A mesh handle is ordinary data
+# (``mesh_words``, a pytree leaf): ``jax.tree.map`` over a MeshBVH, or one rebuilt from its fields,
+# forges one, and Warp dereferences whatever id it is given.
+_LIVE_MESH_IDS: set[int] = set()
+
+
+def is_live_mesh(words: wp.array) -> bool | None:
+    """Whether the ``(2,)`` uint32 ``words`` of a handle name a mesh that is alive.
+
+    ``None`` where they cannot be read from here: on a CUDA device while a graph is captured
+    (the check would have to synchronise). Elsewhere the words are read on the host (a copy of
+    8 bytes on CUDA).
+    """
+    device = words.device
+    if device is not None and not device.is_cpu and device.is_capturing:
+        return None
+    low, high = (int(word) for word in words.numpy())
+    return (low | high << 32) in _LIVE_MESH_IDS
+
+
+# The face id a search of a handle that is not live reports for every query (a miss is -1).
+DEAD_MESH_FACE = -2
+
+
+def fill_outputs(outputs, values) -> None:
+    """Fill each Warp output array with its value (what a search reports for a dead handle)."""
+    for array, value in zip(outputs, values):
+        array.fill_(value)
 
 
 @contextlib.contextmanager

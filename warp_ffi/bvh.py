@@ -11,6 +11,7 @@
   the FFI call, so the whole query traces under ``jit``.
 """
 
+from ._grid import DEAD_MESH_FACE as DEAD_MESH_FACE
 from ._grid import build_mesh as build_mesh
 from ._grid import mesh_id as mesh_id
 from .closest import SIGN_MODES as SIGN_MODES
@@ -20,4 +21,4 @@ from .host import mesh_handle as mesh_handle
 from .host import refit_mesh as refit_mesh
 from .rays import ray_hits as ray_hits
 
-__all__ = ["build_mesh", "closest_tree", "mesh_handle", "mesh_id", "refit_mesh", "point_faces", "ray_hits", "SIGN_MODES"]
+__all__ = ["DEAD_MESH_FACE", "build_mesh", "closest_tree", "mesh_handle", "mesh_id", "refit_mesh", "point_faces", "ray_hits", "SIGN_MODES"]

@@ -15,7 +15,7 @@ from typing import Any, no_type_check
 
 import jax.numpy as jnp
 
-from ._grid import mesh_id, mesh_in_call
+from ._grid import DEAD_MESH_FACE, fill_outputs, is_live_mesh, mesh_id, mesh_in_call
 from ._search import face_corners, max_abs, mesh_inputs, padded_radius, search_params, unit_scaled
 from ._wrap import CallableFamily, Overloads, launch_in_chunks, scalars, vectors
 from ._wrap import warp as wp
@@ -94,8 +94,14 @@ def _ray_search(dtype, build: bool):
         inputs, results = [mesh_words, *args[:8]], list(args[8:])
         launch_in_chunks(kernel, 1, args[0].shape[0], inputs, results)
 
+    def search_prepared(mesh_words, *args):
+        if is_live_mesh(mesh_words) is False:  # a forged or freed handle: never dereferenced
+            fill_outputs(args[8:], (DEAD_MESH_FACE, 0, 0, 0))
+            return
+        run(mesh_words, *args)
+
     if not build:
-        return run
+        return search_prepared
 
     def search_built(vertices32, faces_flat, *args):
         with mesh_in_call(vertices32, faces_flat, winding_number=False) as (_, words):
@@ -116,7 +122,8 @@ def ray_hits(mesh, origins, directions, vertices, faces, max_distance, extent):
     hit is measured on the chosen face in the working dtype and gated by ``max_distance``);
     ``vertices``, ``faces``: the geometry ``(V, 3)`` (working dtype) and ``(F, 3)`` int32, in
     the BVH's face order; ``max_distance`` and ``extent`` (``max |vertex coordinate|``) 0-d
-    arrays. Misses have zero distance, point and normal.
+    arrays. Misses have zero distance, point and normal. A prepared handle whose mesh is not
+    alive (forged, or freed) is not searched: every face is ``DEAD_MESH_FACE``.
     """
     dtype = origins.dtype
     params, params32 = search_params(dtype, max_distance, extent)

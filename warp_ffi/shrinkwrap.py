@@ -37,7 +37,7 @@ from typing import Any, no_type_check
 import jax
 import jax.numpy as jnp
 
-from ._grid import mesh_id, mesh_in_call
+from ._grid import DEAD_MESH_FACE, fill_outputs, is_live_mesh, mesh_id, mesh_in_call
 from ._wrap import CallableFamily, Overloads, launch_in_chunks, scalars, vectors
 from ._wrap import warp as wp
 
@@ -210,16 +210,22 @@ def _search(dtype, build: bool):
     kernel = _nearest(dtype)
     exact = int(dtype == jnp.float64)
 
-    def search_prepared(mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
+    def search(mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
         inputs = [mesh_words, points, vertices, faces, valid, search_points, inv_scale, limits, exact]
         launch_in_chunks(kernel, 1, points.shape[0], inputs, [nearest], min_chunk=1024)
+
+    def search_prepared(mesh_words, *args):
+        if is_live_mesh(mesh_words) is False:  # a forged or freed handle: never dereferenced
+            fill_outputs(args[-1:], (DEAD_MESH_FACE,))
+            return
+        search(mesh_words, *args)
 
     if not build:
         return search_prepared
 
     def search_built(search_vertices, points, vertices, faces, valid, search_points, inv_scale, limits, nearest):
         with mesh_in_call(search_vertices, faces, winding_number=False) as (_, words):
-            search_prepared(words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest)
+            search(words, points, vertices, faces, valid, search_points, inv_scale, limits, nearest)
 
     return search_built
 
@@ -253,7 +259,9 @@ def nearest_valid_faces(
         limits: ``(2,)`` float32: the largest absolute search-frame coordinate of a vertex of a
             valid face, and the gate radius in the search frame (a huge value for none).
 
-    Faces farther than the gate may be returned; callers re-gate on the exact distance.
+    Faces farther than the gate may be returned; callers re-gate on the exact distance. A
+    prepared handle whose mesh is not alive (forged, or freed) is not searched: every query
+    gets ``DEAD_MESH_FACE``.
     """
     build = mesh.dtype != jnp.uint32
     (nearest,) = _search_family(points.dtype, build)(

@@ -311,6 +311,8 @@ def _search_frame(vertices: jax.Array, faces: jax.Array, valid: jax.Array):
 def _nearest_faces_warp(points, vertices, faces, valid, max_distance, bvh) -> jax.Array:
     from warp_ffi.shrinkwrap import nearest_valid_faces
 
+    from ..query.bvh import checked_live_handle
+
     points, vertices = jax.lax.stop_gradient(points), jax.lax.stop_gradient(vertices)
     dtype = vertices.dtype
     if bvh is None:
@@ -337,6 +339,8 @@ def _nearest_faces_warp(points, vertices, faces, valid, max_distance, bvh) -> ja
     nearest = nearest_valid_faces(
         mesh, points[order], vertices, search_faces.reshape(-1), valid.astype(jnp.int32), search_points[order], inv_scale[None], limits
     )
+    if bvh is not None:
+        nearest = checked_live_handle(nearest, _NAME)
     return jnp.zeros_like(nearest).at[order].set(nearest)
 
 

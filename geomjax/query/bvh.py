@@ -521,6 +521,23 @@ def bvh_vertices32(vertices: jax.Array) -> jax.Array:
     return jnp.where(jnp.isfinite(v32), v32, 0)
 
 
+def checked_live_handle(face_ids: jax.Array, op_name: str) -> jax.Array:
+    """``face_ids`` of a Warp search of a MeshBVH's mesh handle, after checking the handle was live.
+
+    The handle (``mesh_words``) is data, so a MeshBVH rebuilt from its fields or mapped with
+    ``jax.tree.map`` can name a freed or never-built mesh; warp_ffi does not search such a
+    handle and reports ``DEAD_MESH_FACE`` for every query, which becomes ``op_name``'s
+    ``ValueError`` here (at run time under ``jit``).
+    """
+    from warp_ffi.bvh import DEAD_MESH_FACE
+
+    message = (
+        f"{op_name}: the MeshBVH's Warp mesh is not alive (it was freed, or the MeshBVH was rebuilt from its "
+        "fields, e.g. by jax.tree.map): pass a MeshBVH made by build_bvh"
+    )
+    return runtime_check(face_ids, jnp.any(face_ids == DEAD_MESH_FACE), message, ValueError)
+
+
 def _concrete_vertices(op_name: str, vertices: jax.Array) -> np.ndarray:
     if isinstance(vertices, jax.core.Tracer):
         raise TypeError(f"{op_name} needs concrete vertices (it runs eagerly): call it outside jax.jit")

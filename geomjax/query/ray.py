@@ -13,7 +13,7 @@ from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors
 from .._geometry import ray_plane_intersection, ray_triangle_intersection, triangle_normal
 from .._validate import as_float32, as_float_array, check_bool, check_real_scalar, check_same_shape
-from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_mesh, finite_vertices, queries_in_working_dtype, replayed
+from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_live_handle, checked_mesh, finite_vertices, queries_in_working_dtype, replayed
 
 __all__ = ["ray_mesh_intersect"]
 
@@ -151,6 +151,8 @@ def _intersect(vertices, faces, o, d, handle, *, max_distance, backend):
     stopped = [jax.lax.stop_gradient(x) for x in (o, d, vertices)]
     search = handle if handle is not None else (bvh_vertices32(stopped[2]), faces.reshape(-1))
     hit_faces, t, points, normals = ray_hits(search, *stopped, faces, jnp.asarray(max_distance, o.dtype), _extent(stopped[2]))
+    if handle is not None:
+        hit_faces = checked_live_handle(hit_faces, _NAME)
     hit = hit_faces >= 0
     values = (jnp.where(hit, t, jnp.inf), points, normals)
 

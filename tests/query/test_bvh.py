@@ -3,6 +3,7 @@
 import gc
 import weakref
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -207,6 +208,39 @@ def test_the_mesh_lives_as_long_as_its_handle():
     ids = jax.jit(closest_faces)(build_bvh(vertices, faces), points)
     gc.collect()
     np.testing.assert_array_equal(ids, closest_faces(build_bvh(vertices, faces), points))
+
+
+@pytest.mark.parametrize("forge", ["zeros", "freed", "never built"])
+def test_forged_or_freed_handles_raise_instead_of_crashing(forge):
+    # The handle is pytree data: jax.tree.map, or a MeshBVH rebuilt from its fields, can name a
+    # mesh that is gone or never existed. Warp would dereference it (a segfault before).
+    from geomjax import documented_errors, shrinkwrap_points
+
+    vertices, faces = _sphere(jnp.float64, 1)
+    bvh = build_bvh(vertices, faces)
+    if forge == "zeros":
+        forged = jax.tree.map(jnp.zeros_like, bvh)
+    elif forge == "freed":
+        forged = jax.tree.map(lambda leaf: jnp.array(np.asarray(leaf)), bvh)  # copies, not the owning buffer
+        mesh_ref = weakref.ref(bvh.warp_mesh)
+        del bvh
+        gc.collect()
+        assert mesh_ref() is None
+    else:
+        forged = jax.tree.map(lambda leaf: leaf, bvh)
+        forged = eqx.tree_at(lambda b: b.mesh_words, forged, jnp.array([0xDEADBEE0, 0x7F], jnp.uint32))
+    origins, directions = jnp.array([[0.0, 0.0, 3.0]]), jnp.array([[0.0, 0.0, -1.0]])
+    message = "the MeshBVH's Warp mesh is not alive"
+    with pytest.raises(ValueError, match=f"ray_mesh_intersect: {message}"):
+        ray_mesh_intersect(vertices, faces, origins, directions, warp_mesh=forged)
+    with pytest.raises(ValueError, match=f"ray_mesh_intersect: {message}"), documented_errors():
+        jax.jit(lambda b: ray_mesh_intersect(vertices, faces, origins, directions, warp_mesh=b))(forged)
+    with pytest.raises(ValueError, match=f"shrinkwrap_points: {message}"):
+        shrinkwrap_points(origins, vertices, faces, bvh=forged, implementation="warp")
+    # A live handle still works next to a dead one.
+    live = build_bvh(vertices, faces)
+    hit = ray_mesh_intersect(vertices, faces, origins, directions, warp_mesh=live)
+    assert bool(hit[0][0]) and abs(float(hit[1][0]) - 2.0) < 0.05
 
 
 def test_refit_moves_the_bvh():
