@@ -28,3 +28,17 @@ def shared_surface(name: str) -> tuple[np.ndarray, np.ndarray]:
     points = np.asarray(mesh.points, np.float64)
     points = points - points.min(axis=0)
     return points / points.max(), triangles
+
+
+@functools.cache
+def shared_volume(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(points (V, 3) float64 in the unit box, tetrahedra (C, 4) int32)`` of a shared volume mesh file.
+
+    Normalised as :func:`shared_surface`, so the two agree on the same file (its boundary triangles).
+    """
+    meshio = pytest.importorskip("meshio")
+    mesh = meshio.read(MESH_DIR / name)
+    tetrahedra = np.concatenate([block.data for block in mesh.cells if block.type == "tetra"]).astype(np.int32)
+    points = np.asarray(mesh.points, np.float64)
+    points = points - points.min(axis=0)
+    return points / points.max(), tetrahedra
