@@ -271,7 +271,7 @@ def ffd_field(points: jax.Array, lattice: jax.Array, origin: jax.Array, extent: 
     def unrolled(x, lat, o, e):
         return _block_field(x, lat, o, e, "unrolled_bernstein")
 
-    if basis == "bernstein" and math.prod(resolution) <= _UNROLLED_MAX_NODES:
+    if basis == "bernstein" and math.prod(resolution) <= _UNROLLED_MAX_NODES and max(resolution) <= _WRITTEN_OUT_BERNSTEIN_NODES:
         one_design = _fast_value(blocked, unrolled)
     else:
         one_design = blocked
@@ -313,9 +313,25 @@ def bernstein_columns(u: jax.Array, num_nodes: int) -> list[jax.Array]:
     return columns
 
 
+# Up to this many nodes the recurrence is written out column by column (fastest to run); beyond,
+# it is a loop over the degree on a (Q, nodes) array: the written-out form has nodes^2 / 2
+# operations for XLA to compile (a degree-132 axis compiled for minutes).
+_WRITTEN_OUT_BERNSTEIN_NODES = 16
+
+
 def bernstein_weights(u: jax.Array, num_nodes: int) -> jax.Array:
     """Bernstein weights ``(Q, num_nodes)`` at ``u`` ``(Q,)`` (see :func:`bernstein_columns`)."""
-    return jnp.stack(bernstein_columns(u, num_nodes), axis=-1)
+    if num_nodes <= _WRITTEN_OUT_BERNSTEIN_NODES:
+        return jnp.stack(bernstein_columns(u, num_nodes), axis=-1)
+    lower, upper = (jnp.ones((), u.dtype) - u)[:, None], u[:, None]
+
+    def raise_degree(_, weights):
+        # B^k_i = (1-u) B^{k-1}_i + u B^{k-1}_{i-1}; entries above the degree stay zero.
+        shifted = jnp.concatenate([jnp.zeros_like(weights[:, :1]), weights[:, :-1]], axis=1)
+        return lower * weights + upper * shifted
+
+    start = jnp.zeros(u.shape + (num_nodes,), u.dtype).at[:, 0].set(1)
+    return jax.lax.fori_loop(1, num_nodes, raise_degree, start)
 
 
 # Later axes with at most this many nodes are contracted by an unrolled multiply-add (fastest
