@@ -20,25 +20,24 @@ requires_shared_meshes = pytest.mark.skipif(not MESH_DIR.is_dir(), reason="the s
 
 
 @functools.cache
-def shared_surface(name: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(points (V, 3) float64 in the unit box, triangles (F, 3) int32)`` of a shared mesh file."""
+def _shared_cells(name: str, cell_type: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(points (V, 3) float64 in the unit box, cells (C, k) int32)`` of one cell type of a file."""
     meshio = pytest.importorskip("meshio")
     mesh = meshio.read(MESH_DIR / name)
-    triangles = np.concatenate([block.data for block in mesh.cells if block.type == "triangle"]).astype(np.int32)
+    cells = np.concatenate([block.data for block in mesh.cells if block.type == cell_type]).astype(np.int32)
     points = np.asarray(mesh.points, np.float64)
     points = points - points.min(axis=0)
-    return points / points.max(), triangles
+    return points / points.max(), cells
 
 
-@functools.cache
+def shared_surface(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(points (V, 3) float64 in the unit box, triangles (F, 3) int32)`` of a shared mesh file."""
+    return _shared_cells(name, "triangle")
+
+
 def shared_volume(name: str) -> tuple[np.ndarray, np.ndarray]:
     """``(points (V, 3) float64 in the unit box, tetrahedra (C, 4) int32)`` of a shared volume mesh file.
 
     Normalised as :func:`shared_surface`, so the two agree on the same file (its boundary triangles).
     """
-    meshio = pytest.importorskip("meshio")
-    mesh = meshio.read(MESH_DIR / name)
-    tetrahedra = np.concatenate([block.data for block in mesh.cells if block.type == "tetra"]).astype(np.int32)
-    points = np.asarray(mesh.points, np.float64)
-    points = points - points.min(axis=0)
-    return points / points.max(), tetrahedra
+    return _shared_cells(name, "tetra")
