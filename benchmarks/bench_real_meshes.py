@@ -51,18 +51,56 @@ remeshed to 500 and 2000 clusters (at most half their vertices) by geomjax, its 
 algorithm and pyacvd: time, Euler characteristic and boundary edges in and out, Hausdorff
 distance, smallest angles, and issue 15's targets (about 2.5 minutes).
 
-Usage: ``python benchmarks/bench_real_meshes.py [--quick] [--repeat R] [--sections sobolev remesh]``
+Section "queries" (table ``real_meshes_queries``, see :func:`query_rows`): robustness and time of
+the mesh queries on the eight triangle surfaces (no tetrahedra, no icosphere), one row per mesh,
+query, method and dtype; geomjax runs on its default backend (``implementation=None``) in float32
+and float64. ``sdf``: 20,000 points (seed 0) uniform in the bounding box grown by 10% about its
+centre; ``signed_distance_field`` with the normal sign and with ``use_sign_winding_number=True``
+against pysdf (``SDF``, positive inside: negated; sign from three rays' crossings, distance only
+to the faces around the nearest vertex, an approximation), Open3D
+(``RaycastingScene.compute_signed_distance``, sign from one ray's crossings) and libigl
+(``signed_distance`` with its default sign type, which in libigl is the exact winding number, the
+pseudonormal and the fast winding number), all as negative inside. Truth: the exact float64
+point-triangle distance (a search over the bounding boxes of 256-face groups that skips only groups
+that cannot be nearer) and the generalized winding number ``w``, brute force in float64 (Van
+Oosterom-Strackee solid angles of every face). ``sign_errors`` counts the confident points
+(``|w - 0.5| > 0.25`` and distance ``> 1e-3``: ``confident_points``) whose sign disagrees with
+``w > 0.5``, also on camelhead and lion, which are open (one boundary loop each) so that only the
+winding number defines inside; ``max_abs_error`` is the largest ``||value| - distance|`` over all
+points. libigl's winding-number sign types return ``(1 - 2w)`` times the distance (a continuous
+sign, by design), so on an open surface their value is not the distance. The winding numbers stay
+within ``WINDING_PAIR_BUDGET`` point-face pairs per mesh (about 30 s; past it only the first points
+get one): every point of the shared meshes is checked.
+
+``rays``: 100,000 rays (seed 1) from points on a sphere of 1.1 half-diagonals about the box's centre
+towards uniform points in the box, unit directions; geomjax ``ray_mesh_intersect`` against embreex
+and Open3D ``RaycastingScene.cast_rays``, checked against a brute-force float64 Möller-Trumbore
+(both sides, edges included) on the first 2,000 rays: ``mask_errors`` (hit or miss wrong),
+``distance_errors`` (off by more than 1e-4 relative) and ``max_abs_error`` of the distance. In both
+queries the queries that the methods disagree on (``disputed``, out of all of them) are checked as
+well (at most 2,000 more), so that a rare error of one method is not lost outside the sample;
+``checked`` counts the queries with a truth. Every method builds its search structure inside the
+timed call (geomjax's BVH is built in every call too); ``time_s`` is the best of ``--repeat`` warm
+calls. A peer that does not import is skipped with a note. Findings: no hit-mask or distance errors
+and no disputed ray anywhere; no sign errors on the closed surfaces; on the open ones the normal
+sign (geomjax's default, like libigl's pseudonormal) fails where the closest point is seen through
+the hole (lion: 1,199 of 18,141 confident points) and the winding-number sign has none. About 2.5
+minutes; ``--quick``: 2,000 points, 10,000 rays, 500 checked.
+
+Usage: ``python benchmarks/bench_real_meshes.py [--quick] [--repeat R] [--sections sobolev remesh queries]``
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import importlib
 import inspect
 import math
 import os
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -76,9 +114,10 @@ import meshio
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import cg, splu
+from scipy.spatial import cKDTree
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _harness import best_time, report
+from _harness import best_time, block, report
 
 jax.config.update("jax_enable_x64", True)
 
@@ -218,9 +257,7 @@ def _geomjax_pcg(points, displacement, cells, pattern, hierarchy, *, max_steps, 
         preconditioner = MultilevelPreconditioner.for_helmholtz(stiffness, mass, length_scale_squared, None, hierarchy)
     rhs = mass * displacement
     tolerance = jnp.asarray(DEFAULT_TOLERANCE[jnp.dtype(points.dtype)], points.dtype)
-    result = jacobi_pcg(
-        operator.mv, rhs, operator.inverse_diagonal(), displacement, rtol=tolerance, max_steps=max_steps, preconditioner=preconditioner
-    )
+    result = jacobi_pcg(operator.mv, rhs, operator.inverse_diagonal(), displacement, rtol=tolerance, max_steps=max_steps, preconditioner=preconditioner)
     residual = jnp.linalg.norm(rhs - operator.mv(result.solution)) / jnp.linalg.norm(rhs)
     return result.num_steps, result.converged, residual
 
@@ -492,6 +529,398 @@ def _surface_topology(faces: np.ndarray) -> tuple[int, int, int]:
     return int(np.unique(faces).size - counts.size + len(faces)), int(np.sum(counts == 1)), int(np.sum(counts > 2))
 
 
+# ---------------------------------------------------------------------------------------------
+# Section "queries": signed distance and first hits against peer libraries, every answer checked
+# against exact float64 answers computed here (NumPy and SciPy, no geomjax).
+
+QUERY_POINTS = 20_000
+QUERY_RAYS = 100_000
+QUERY_CHECKED_RAYS = 2_000
+QUICK_QUERY_COUNTS = (2_000, 10_000, 500)  # --quick: points, rays, randomly checked rays
+QUERY_BOX_SCALE = 1.1  # SDF queries: uniform in the bounding box grown by 10% about its centre
+RAY_SPHERE_SCALE = 1.1  # ray origins: on a sphere of 1.1 half-diagonals of the box about its centre
+QUERY_SEED = 0
+CONFIDENT_WINDING = 0.25  # a sign is checked only where |w - 0.5| exceeds this ...
+CONFIDENT_DISTANCE = 1e-3  # ... and the point lies farther than this from the surface (unit box)
+# Brute-force winding numbers cost about 15 ns per point-face pair in NumPy on 2 cores: past this
+# budget (about 30 s a mesh) only the first points get one. The shared meshes stay within it (at
+# most 20,000 x 86,482 pairs, armadillo), so every point is checked; larger inputs are subsampled.
+WINDING_PAIR_BUDGET = 2_000_000_000
+MAX_DISPUTED = 2_000  # queries the methods disagree on, checked on top of the sample (at most)
+RAY_RELATIVE_TOLERANCE = 1e-4
+DISTANCE_GROUP_SIZE = 256  # faces per bounding box of the exact distance search
+PAIR_BLOCK = 1 << 15  # point-face pairs per NumPy block: the temporaries stay in cache
+
+
+def query_rows(
+    meshes: list[RealMesh], repeat: int, num_points: int = QUERY_POINTS, num_rays: int = QUERY_RAYS, num_checked_rays: int = QUERY_CHECKED_RAYS
+) -> list[dict]:
+    """Table "real_meshes_queries": ``signed_distance_field`` and ``ray_mesh_intersect`` against peers, checked exactly.
+
+    Per triangle surface (no tetrahedra, no icosphere) and query, one row per method and dtype:
+    the best-of-``repeat`` time of a warm call (compile excluded; every method builds its search
+    structure inside the timed call, as geomjax's default backend does), its errors against the
+    exact answers, and ``disputed``: how many of all the queries the methods disagree on (the
+    sign; the hit or the distance). Disputed queries are checked as well as the random sample (at
+    most ``MAX_DISPUTED`` more), so a rare error of one method is counted even where the sample
+    misses it.
+    """
+    peers = {module: _optional(module) for module in ("pysdf", "igl", "open3d", "embreex")}
+    rows = []
+    for mesh in meshes:
+        if mesh.kind != "tri" or mesh.name.startswith("icosphere"):
+            continue
+        start = time.perf_counter()
+        rows += _sdf_rows(mesh, repeat, num_points, peers)
+        rows += _ray_rows(mesh, repeat, num_rays, num_checked_rays, peers)
+        print(f"  ({time.perf_counter() - start:.1f} s)", flush=True)
+    return rows
+
+
+def _optional(module: str):
+    """The imported module, or ``None`` after a printed note (a broken install counts as absent)."""
+    try:
+        return importlib.import_module(module)
+    except Exception as error:  # noqa: BLE001 - Open3D without libusb raises OSError, not ImportError
+        print(f"queries: {module} is not importable ({type(error).__name__}: {error}): its rows are skipped", flush=True)
+        return None
+
+
+def _query_row(mesh: RealMesh, query: str, method: str, dtype: str, seconds: float, **results) -> dict:
+    """A row with every column of the table, ``None`` where the query has no such figure."""
+    row = {"mesh": mesh.name, "query": query, "method": method, "dtype": dtype, "time_s": seconds, "checked": None}
+    row |= dict.fromkeys(("confident_points", "sign_errors", "mask_errors", "distance_errors", "max_abs_error", "disputed"))
+    return row | results
+
+
+def _timed_methods(methods: dict, queries: tuple[np.ndarray, ...], repeat: int) -> tuple[dict, dict]:
+    """Run each ``(prepare, run)`` once (compiles), then time it: ``({key: outputs as NumPy}, {key: seconds})``."""
+    outputs, times = {}, {}
+    for key, (prepare, run) in methods.items():
+        args = prepare(*queries)  # the conversion to the method's types is not timed
+        outputs[key] = jax.tree.map(np.asarray, block(run(*args)))
+        times[key] = best_time(lambda run=run, args=args: run(*args), repeat=repeat, warmup=0)
+    return outputs, times
+
+
+def _checked_queries(sample: int, disputed: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``(checked, extra)``: the first ``sample`` queries plus the disputed ones beyond them (at
+    most ``MAX_DISPUTED``, drawn at random), which get a ground truth."""
+    extra = disputed[disputed >= sample]
+    if len(extra) > MAX_DISPUTED:
+        extra = np.sort(rng.choice(extra, MAX_DISPUTED, replace=False))
+    return np.concatenate([np.arange(sample), extra]), extra
+
+
+def _sdf_rows(mesh: RealMesh, repeat: int, num_points: int, peers: dict) -> list[dict]:
+    rng = np.random.default_rng(QUERY_SEED)
+    low, high = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    centre, half = (low + high) / 2, (high - low) / 2 * QUERY_BOX_SCALE
+    points = centre + rng.uniform(-half, half, (num_points, 3))
+    distance = exact_distances(points, mesh.points, mesh.cells)
+    outputs, times = _timed_methods(_sdf_methods(mesh, peers), (points,), repeat)
+    values = {key: np.asarray(value, np.float64).reshape(-1) for key, value in outputs.items()}
+
+    # Winding numbers of the sample (all points unless the budget says otherwise) and of the points
+    # whose sign the methods dispute.
+    sample = min(num_points, max(1, WINDING_PAIR_BUDGET // len(mesh.cells)))
+    inside = np.stack([value < 0 for value in values.values()])
+    disputed = np.flatnonzero(np.any(inside != inside[:1], axis=0))
+    checked, extra = _checked_queries(sample, disputed, rng)
+    winding = winding_numbers(points[checked], mesh.points[mesh.cells])
+    confident = checked[(np.abs(winding - 0.5) > CONFIDENT_WINDING) & (distance[checked] > CONFIDENT_DISTANCE)]
+    truth_inside = np.zeros(num_points, bool)
+    truth_inside[checked] = winding > 0.5
+    print(
+        f"{mesh.name} sdf: {num_points} points, winding numbers of {len(checked)} ({sample} sampled, {len(extra)} of "
+        f"{len(disputed)} disputed), {len(confident)} confident ({truth_inside[confident].mean():.0%} inside)",
+        flush=True,
+    )
+    rows = []
+    for (method, dtype), value in values.items():
+        # A NaN or infinite value is a wrong sign and an infinite distance error.
+        wrong = ~np.isfinite(value[confident]) | ((value[confident] < 0) != truth_inside[confident])
+        error = float(np.max(np.where(np.isfinite(value), np.abs(np.abs(value) - distance), np.inf)))
+        seconds = times[method, dtype]
+        rows.append(_query_row(
+            mesh, "sdf", method, dtype, seconds, checked=len(checked), confident_points=len(confident),
+            sign_errors=int(wrong.sum()), max_abs_error=error, disputed=len(disputed),
+        ))  # fmt: skip
+        print(f"  {method} [{dtype}]: {seconds * 1e3:.1f} ms, {wrong.sum()} sign errors, max |distance error| {error:.1e}", flush=True)
+    return rows
+
+
+def _sdf_methods(mesh: RealMesh, peers: dict) -> dict:
+    """``(method, dtype) -> (prepare(points) -> args, run(*args) -> signed distances)``, all negative inside."""
+    from geomjax import signed_distance_field
+
+    methods = {}
+    for dtype in (np.float32, np.float64):
+        vertices, faces = jnp.asarray(mesh.points, dtype), jnp.asarray(mesh.cells)
+        for sign, winding in (("normal", False), ("winding number", True)):
+            call = jax.jit(lambda v, f, p, winding=winding: signed_distance_field(v, f, p, use_sign_winding_number=winding)[0])
+            methods[f"geomjax, {sign} sign", np.dtype(dtype).name] = (
+                lambda p, dtype=dtype, vertices=vertices, faces=faces: (vertices, faces, jnp.asarray(p, dtype)),
+                call,
+            )
+    vertices32, faces32 = mesh.points.astype(np.float32), mesh.cells.astype(np.uint32)
+
+    def as_float32(p):
+        return (np.ascontiguousarray(p, np.float32),)
+
+    if (pysdf := peers["pysdf"]) is not None:
+        # pysdf is positive inside. Its sign (robust mode, the default) is the majority of three rays'
+        # parities; its distance only measures the faces around the nearest vertex (approximate).
+        methods["pysdf", "float32"] = (as_float32, lambda p: -pysdf.SDF(vertices32, faces32)(p).reshape(-1))
+    if (o3d := peers["open3d"]) is not None:
+        # Open3D is negative inside; its sign is the parity of one ray's crossings (nsamples=1).
+        def open3d_sdf(p):
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.core.Tensor(vertices32), o3d.core.Tensor(faces32))
+            return scene.compute_signed_distance(o3d.core.Tensor(p)).numpy()
+
+        methods["Open3D", "float32"] = (as_float32, open3d_sdf)
+    if (igl := peers["igl"]) is not None:
+        # libigl is negative inside. Its default sign type is the exact (hierarchical) winding number.
+        faces64 = mesh.cells.astype(np.int64)
+        for name, attribute in (
+            ("libigl, default sign", "SIGNED_DISTANCE_TYPE_DEFAULT"),
+            ("libigl, pseudonormal sign", "SIGNED_DISTANCE_TYPE_PSEUDONORMAL"),
+            ("libigl, fast winding number sign", "SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER"),
+        ):
+            if hasattr(igl, attribute):
+                sign_type = getattr(igl, attribute)
+                methods[name, "float64"] = (
+                    lambda p: (np.ascontiguousarray(p, np.float64),),
+                    lambda p, sign_type=sign_type: igl.signed_distance(p, mesh.points, faces64, sign_type=sign_type)[0],
+                )
+    return methods
+
+
+def _ray_rows(mesh: RealMesh, repeat: int, num_rays: int, num_checked: int, peers: dict) -> list[dict]:
+    rng = np.random.default_rng(QUERY_SEED + 1)
+    low, high = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    centre = (low + high) / 2
+    radius = RAY_SPHERE_SCALE * np.linalg.norm(high - low) / 2
+    normal = rng.normal(size=(num_rays, 3))
+    origins = centre + radius * normal / np.linalg.norm(normal, axis=1, keepdims=True)
+    directions = rng.uniform(low, high, (num_rays, 3)) - origins
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    outputs, times = _timed_methods(_ray_methods(mesh, peers), (origins, directions), repeat)
+    # Every method's answer as a float64 distance, +inf for a miss.
+    distances = {key: np.where(np.isfinite(t) & (t < 1e30), t, np.inf).astype(np.float64).reshape(-1) for key, t in outputs.items()}
+
+    # Rays are disputed when two methods disagree on the hit or on its distance.
+    stacked = np.stack(list(distances.values()))
+    hits = np.isfinite(stacked)
+    nearest, farthest = np.min(np.where(hits, stacked, np.inf), axis=0), np.max(np.where(hits, stacked, -np.inf), axis=0)
+    disputed = np.flatnonzero(np.any(hits != hits[:1], axis=0) | (farthest - nearest > RAY_RELATIVE_TOLERANCE * nearest))
+    sample = np.arange(min(num_checked, num_rays))  # the rays are random: the first ones are a sample
+    checked, extra = _checked_queries(len(sample), disputed, rng)
+    truth = first_hits(origins[checked], directions[checked], mesh.points[mesh.cells])
+    print(
+        f"{mesh.name} rays: {num_rays} rays, {np.isfinite(truth[: len(sample)]).mean():.0%} of the sample hit; "
+        f"checked {len(checked)} ({len(sample)} sampled, {len(extra)} of {len(disputed)} disputed)",
+        flush=True,
+    )
+    rows = []
+    for (method, dtype), distance in distances.items():
+        ours, truth_hit = distance[checked], np.isfinite(truth)
+        both = np.isfinite(ours) & truth_hit
+        mask_errors = int(np.sum(np.isfinite(ours) != truth_hit))
+        deviation = np.abs(ours[both] - truth[both])
+        distance_errors = int(np.sum(deviation > RAY_RELATIVE_TOLERANCE * truth[both]))
+        error = float(deviation.max()) if both.any() else 0.0
+        seconds = times[method, dtype]
+        rows.append(_query_row(
+            mesh, "rays", method, dtype, seconds, checked=len(checked), mask_errors=mask_errors,
+            distance_errors=distance_errors, max_abs_error=error, disputed=len(disputed),
+        ))  # fmt: skip
+        print(
+            f"  {method} [{dtype}]: {seconds * 1e3:.1f} ms, {mask_errors} hit-mask errors, {distance_errors} distance errors, max |distance error| {error:.1e}",
+            flush=True,
+        )
+    return rows
+
+
+def _ray_methods(mesh: RealMesh, peers: dict) -> dict:
+    """``(method, dtype) -> (prepare(origins, unit directions) -> args, run(*args) -> hit distances)``."""
+    from geomjax import ray_mesh_intersect
+
+    def geomjax_rays(vertices, faces, origins, directions):
+        hit, distance = ray_mesh_intersect(vertices, faces, origins, directions)[:2]
+        return jnp.where(hit, distance, jnp.inf)
+
+    call = jax.jit(geomjax_rays)
+    methods = {}
+    for dtype in (np.float32, np.float64):
+        vertices, faces = jnp.asarray(mesh.points, dtype), jnp.asarray(mesh.cells)
+        methods["geomjax", np.dtype(dtype).name] = (
+            lambda o, d, dtype=dtype, vertices=vertices, faces=faces: (vertices, faces, jnp.asarray(o, dtype), jnp.asarray(d, dtype)),
+            call,
+        )
+    triangles32 = mesh.points[mesh.cells].astype(np.float32)
+    vertices32, faces32 = mesh.points.astype(np.float32), mesh.cells.astype(np.uint32)
+    if peers["embreex"] is not None:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        def embree_rays(origins, directions):
+            scene = rtcore_scene.EmbreeScene()
+            TriangleMesh(scene, triangles32)
+            return scene.run(origins, directions, query="DISTANCE")  # a miss: 1e37
+
+        methods["embreex", "float32"] = (lambda o, d: (o.astype(np.float32), d.astype(np.float32)), embree_rays)
+    if (o3d := peers["open3d"]) is not None:
+
+        def open3d_rays(rays):
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.core.Tensor(vertices32), o3d.core.Tensor(faces32))
+            return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()  # a miss: inf
+
+        methods["Open3D", "float32"] = (lambda o, d: (np.concatenate([o, d], axis=1).astype(np.float32),), open3d_rays)
+    return methods
+
+
+# Exact answers in float64 (NumPy and SciPy only).
+
+
+def exact_distances(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance from each point to the nearest triangle, exact in float64 (a pruned exhaustive search).
+
+    The faces are split into groups of at most ``DISTANCE_GROUP_SIZE`` by median cuts of their
+    centroids. A point starts with the distance to its nearest mesh vertex (an upper bound) and
+    measures every face of each group whose bounding box is not farther than its best distance so
+    far: a group left out has no face nearer than that, so the minimum is the exact one.
+    """
+    triangles = vertices[faces]
+    best = cKDTree(vertices[np.unique(faces)]).query(points)[0] ** 2
+    for group in _face_groups(triangles.mean(axis=1)):
+        group_triangles = triangles[group]
+        low, high = group_triangles.min(axis=(0, 1)), group_triangles.max(axis=(0, 1))
+        box_gap = np.sum((np.maximum(low - points, 0) + np.maximum(points - high, 0)) ** 2, axis=1)
+        near = np.flatnonzero(box_gap <= best)
+        step = max(1, PAIR_BLOCK // len(group))
+        for start in range(0, len(near), step):
+            block = near[start : start + step]
+            best[block] = np.minimum(best[block], _squared_triangle_distances(points[block], group_triangles).min(axis=1))
+    return np.sqrt(best)
+
+
+def _face_groups(centroids: np.ndarray) -> list[np.ndarray]:
+    """Face ids in spatially compact groups: median cuts along the longest extent (a k-d tree's leaves)."""
+    pending, groups = [np.arange(len(centroids))], []
+    while pending:
+        ids = pending.pop()
+        if len(ids) <= DISTANCE_GROUP_SIZE:
+            groups.append(ids)
+            continue
+        along = centroids[ids, np.argmax(np.ptp(centroids[ids], axis=0))]
+        ids = ids[np.argsort(along, kind="stable")]
+        pending += [ids[: len(ids) // 2], ids[len(ids) // 2 :]]
+    return groups
+
+
+def _squared_triangle_distances(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``(P, T)`` squared distances between points and triangles (degenerate triangles too).
+
+    Where the point projects into the triangle (on the inner side of its three edges, measured
+    with the in-plane edge normals), the distance is the one to the plane; elsewhere it is the
+    nearest of the three edges, each a clamped segment projection. A zero-area triangle is only
+    its edges.
+    """
+    p = points[:, None, :]
+    a, b, c = triangles[None, :, 0], triangles[None, :, 1], triangles[None, :, 2]
+    normal = np.cross(b - a, c - a)
+    squared_area = np.sum(normal * normal, axis=-1)
+    inner = squared_area > 0
+    for start, edge_end in ((a, b), (b, c), (c, a)):
+        inner = inner & (np.sum((p - start) * np.cross(normal, edge_end - start), axis=-1) >= 0)
+    plane = np.sum((p - a) * normal, axis=-1) ** 2 / np.where(squared_area > 0, squared_area, 1.0)
+    edges = np.minimum(np.minimum(_squared_segment_distances(p, a, b), _squared_segment_distances(p, b, c)), _squared_segment_distances(p, c, a))
+    return np.where(inner, plane, edges)
+
+
+def _squared_segment_distances(p: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    edge = end - start
+    length = np.sum(edge * edge, axis=-1)
+    t = np.clip(np.sum((p - start) * edge, axis=-1) / np.where(length > 0, length, 1.0), 0.0, 1.0)
+    gap = p - start - t[..., None] * edge
+    return np.sum(gap * gap, axis=-1)
+
+
+def winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Generalized winding numbers, brute force over every face in float64 (Van Oosterom and Strackee).
+
+    The solid angle of a triangle with corners ``a, b, c`` relative to the point is
+    ``2 atan2(a . (b x c), |a||b||c| + (a . b)|c| + (b . c)|a| + (c . a)|b|)``; the winding number
+    is their sum over ``4 pi``.
+    """
+    corners = [np.ascontiguousarray(triangles[:, i, k]) for i in range(3) for k in range(3)]
+
+    def solid_angle_sums(points, faces):
+        ax, ay, az, bx, by, bz, cx, cy, cz = (corner[faces] for corner in corners)
+        px, py, pz = (points[:, k, None] for k in range(3))
+        ax, ay, az, bx, by, bz, cx, cy, cz = ax - px, ay - py, az - pz, bx - px, by - py, bz - pz, cx - px, cy - py, cz - pz
+        la, lb, lc = np.sqrt(ax * ax + ay * ay + az * az), np.sqrt(bx * bx + by * by + bz * bz), np.sqrt(cx * cx + cy * cy + cz * cz)
+        det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+        den = la * lb * lc + (ax * bx + ay * by + az * bz) * lc + (bx * cx + by * cy + bz * cz) * la + (cx * ax + cy * ay + cz * az) * lb
+        return np.arctan2(det, den).sum(axis=1)
+
+    return _pairs_in_blocks(solid_angle_sums, np.add, 0.0, points, len(triangles)) / (2 * np.pi)
+
+
+def first_hits(origins: np.ndarray, directions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Distance of each ray's first hit (``+inf``: none), brute-force Möller–Trumbore in float64, both sides.
+
+    A hit needs a ray not parallel to the plane (``det != 0``), barycentric ``u, v >= 0`` and
+    ``u + v <= 1`` (edges included) and ``t > 0``; ``directions`` are unit vectors, so ``t`` is the
+    distance.
+    """
+    a = triangles[:, 0]
+    arrays = [np.ascontiguousarray(x[:, k]) for x in (a, triangles[:, 1] - a, triangles[:, 2] - a) for k in range(3)]
+
+    def nearest_hits(rays, faces):
+        ax, ay, az, e1x, e1y, e1z, e2x, e2y, e2z = (x[faces] for x in arrays)
+        ox, oy, oz, dx, dy, dz = (rays[:, k, None] for k in range(6))
+        px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+        det = e1x * px + e1y * py + e1z * pz
+        inverse = 1.0 / np.where(det != 0, det, 1.0)
+        tx, ty, tz = ox - ax, oy - ay, oz - az
+        u = (tx * px + ty * py + tz * pz) * inverse
+        qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
+        v = (dx * qx + dy * qy + dz * qz) * inverse
+        t = (e2x * qx + e2y * qy + e2z * qz) * inverse
+        hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+        return np.min(np.where(hit, t, np.inf), axis=1)
+
+    return _pairs_in_blocks(nearest_hits, np.minimum, np.inf, np.concatenate([origins, directions], axis=1), len(triangles))
+
+
+def _pairs_in_blocks(kernel, combine, initial: float, queries: np.ndarray, num_faces: int) -> np.ndarray:
+    """``combine`` of ``kernel(query rows, face ids)`` over all faces, for every query, blockwise on all cores.
+
+    Blocks of about ``PAIR_BLOCK`` query-face pairs keep the temporaries in cache; the queries are
+    split among threads (NumPy's loops release the GIL).
+    """
+    face_step = min(num_faces, PAIR_BLOCK)
+    query_step = max(1, PAIR_BLOCK // face_step)
+
+    def part(first: int, last: int) -> np.ndarray:
+        out = np.full(last - first, initial)
+        for face in range(0, num_faces, face_step):
+            faces = slice(face, face + face_step)  # a view of the face arrays, no copy
+            for start in range(first, last, query_step):
+                stop = min(start + query_step, last)
+                out[start - first : stop - first] = combine(out[start - first : stop - first], kernel(queries[start:stop], faces))
+        return out
+
+    workers = os.cpu_count() or 1
+    bounds = np.linspace(0, len(queries), workers + 1).astype(int)
+    with ThreadPoolExecutor(workers) as pool:
+        return np.concatenate(list(pool.map(part, bounds[:-1], bounds[1:])))
+
+
 def _within(count: int | str, budget: int) -> bool:
     return isinstance(count, int) and count <= budget
 
@@ -508,7 +937,8 @@ def main() -> None:
         help=f"meshes with < {QUICK_MAX_VERTICES:,} vertices, no icosphere(6), jax path only, counts to {QUICK_MAX_COUNTED_ITERATIONS}",
     )
     parser.add_argument("--repeat", type=int, default=None, help="best of this many timed runs (default 3, 1 with --quick)")
-    parser.add_argument("--sections", nargs="+", choices=("sobolev", "remesh"), default=("sobolev", "remesh"), help="the measurements to run")
+    sections = ("sobolev", "remesh", "queries")
+    parser.add_argument("--sections", nargs="+", choices=sections, default=sections, help="the measurements to run")
     args = parser.parse_args()
     start = time.perf_counter()
     meshes = load_meshes(args.quick)
@@ -527,6 +957,9 @@ def main() -> None:
         report("real_meshes", rows)
     if "remesh" in args.sections:
         report("real_meshes_remesh", remesh_rows(meshes, repeat))
+    if "queries" in args.sections:
+        counts = QUICK_QUERY_COUNTS if args.quick else (QUERY_POINTS, QUERY_RAYS, QUERY_CHECKED_RAYS)
+        report("real_meshes_queries", query_rows(meshes, repeat, *counts))
     print(f"total {time.perf_counter() - start:.1f} s")
 
 
