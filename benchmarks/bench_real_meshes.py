@@ -574,7 +574,26 @@ def query_rows(
         rows += _sdf_rows(mesh, repeat, num_points, peers)
         rows += _ray_rows(mesh, repeat, num_rays, num_checked_rays, peers)
         print(f"  ({time.perf_counter() - start:.1f} s)", flush=True)
+    intact = next((mesh for mesh in meshes if mesh.name == DAMAGED_SOURCE), None)
+    if intact is not None:
+        rows += _sdf_rows(damaged_copy(intact), repeat, num_points, peers, intact_cells=intact.cells)
     return rows
+
+
+DAMAGED_SOURCE = "fertility.off"
+DAMAGED_REMOVED, DAMAGED_FLIPPED = 0.005, 0.01  # fractions of the faces
+
+
+def damaged_copy(mesh: RealMesh) -> RealMesh:
+    """``mesh`` as a broken scan comes: 0.5% of its faces removed (small holes) and 1% of the rest
+    with their orientation flipped, chosen with a fixed seed. Inside is still the intact solid's."""
+    rng = np.random.default_rng(7)
+    keep = rng.random(len(mesh.cells)) >= DAMAGED_REMOVED
+    cells = mesh.cells[keep].copy()
+    flip = rng.random(len(cells)) < DAMAGED_FLIPPED
+    cells[flip] = cells[flip][:, ::-1]
+    name = f"{mesh.name}, {DAMAGED_REMOVED:.1%} faces removed, {DAMAGED_FLIPPED:.0%} flipped"
+    return RealMesh(name, mesh.points, cells, mesh.kind)
 
 
 def _optional(module: str):
@@ -612,7 +631,9 @@ def _checked_queries(sample: int, disputed: np.ndarray, rng: np.random.Generator
     return np.concatenate([np.arange(sample), extra]), extra
 
 
-def _sdf_rows(mesh: RealMesh, repeat: int, num_points: int, peers: dict) -> list[dict]:
+def _sdf_rows(mesh: RealMesh, repeat: int, num_points: int, peers: dict, intact_cells: np.ndarray | None = None) -> list[dict]:
+    """The sdf rows of one mesh; ``intact_cells``: for a damaged copy, the cells whose winding number
+    says what is inside (the surface before the damage), instead of its own."""
     rng = np.random.default_rng(QUERY_SEED)
     low, high = mesh.points.min(axis=0), mesh.points.max(axis=0)
     centre, half = (low + high) / 2, (high - low) / 2 * QUERY_BOX_SCALE
@@ -627,7 +648,7 @@ def _sdf_rows(mesh: RealMesh, repeat: int, num_points: int, peers: dict) -> list
     inside = np.stack([value < 0 for value in values.values()])
     disputed = np.flatnonzero(np.any(inside != inside[:1], axis=0))
     checked, extra = _checked_queries(sample, disputed, rng)
-    winding = winding_numbers(points[checked], mesh.points[mesh.cells])
+    winding = winding_numbers(points[checked], mesh.points[mesh.cells if intact_cells is None else intact_cells])
     confident = checked[(np.abs(winding - 0.5) > CONFIDENT_WINDING) & (distance[checked] > CONFIDENT_DISTANCE)]
     truth_inside = np.zeros(num_points, bool)
     truth_inside[checked] = winding > 0.5
