@@ -352,12 +352,14 @@ def remesh_with_sources(
         positions[flat], source_faces[flat], barycentric[flat] = project((centroids[flat] * scale + centre).astype(dtype))
     triangles = _surviving(triangles, positions, "topology reconstruction")
 
-    # 6. Relaxation on the surface.
+    # 6. Relaxation on the surface. Flips and the removals below touch interior edges and
+    # vertices only, so the boundary vertices stay those of step 5.
+    fixed = boundary_vertices(triangles, n_clusters)
     for _ in range(relaxation_iterations):
         # One round per step: the next steps continue the flips, the final pass completes them.
         triangles = delaunay_flips(positions, triangles, rounds=1)
         vertex_rho = None if rho is None else np.einsum("vk,vk->v", barycentric, rho[faces[source_faces]])
-        targets = relaxation_targets(positions, triangles, vertex_rho, boundary_vertices(triangles, n_clusters))
+        targets = relaxation_targets(positions, triangles, vertex_rho, fixed)
         moved = project((positions + quadrics.free_moves(targets - positions)).astype(dtype))
         # A step that would overturn a triangle is undone for that triangle's vertices.
         undo = overturned_vertices(positions, moved[0], triangles)
@@ -368,7 +370,7 @@ def remesh_with_sources(
         # Flips stop at degree three, so the degree-three vertices go after them; the last
         # needles and caps (at creases and tips, which flips and moves keep) lose an edge.
         triangles = remove_degree_three(positions, delaunay_flips(positions, triangles), n_clusters)
-        triangles = collapse_poor_triangles(positions, triangles, boundary_vertices(triangles, n_clusters), quadrics.crease_strength())
+        triangles = collapse_poor_triangles(positions, triangles, fixed, quadrics.crease_strength())
         triangles = _surviving(triangles, positions, "relaxation")
     _warn_if_topology_changed(edges, triangles, n_clusters)
     return _result(positions, triangles, source_faces, barycentric, index_dtype, device)
