@@ -145,7 +145,7 @@ def _custom_op(name, *values, **options):
     bound = inspect.signature(function).bind(*values, **options)
     bound.apply_defaults()
     slots, statics = op.bind(tuple(bound.arguments.values()))
-    return op.lifted.op(*slots, *statics, [x is not None and x.requires_grad for x in slots])
+    return op.lifted.op(*op.lifted.op_arguments(slots, statics, [x is not None and x.requires_grad for x in slots]))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -2,7 +2,8 @@
 
 ``from torch_bridge import morph_points`` replaces ``from physicsnemo.nn.functional import
 morph_points``: same parameters and defaults, same values, same exception types, gradients of any
-order the JAX path supports, ``torch.compile(fullgraph=True)`` without graph breaks, and
+order the JAX path supports, ``torch.compile(fullgraph=True)`` without graph breaks (and, with
+``dynamic=True``, one graph for every value of a real option), and
 ``torch.func`` transforms (``grad``, ``vjp``, ``jvp``, ``jacrev``, ``jacfwd``, ``hessian``, ``vmap``)
 through ``jax.vjp``, ``jax.jvp`` and ``jax.vmap``. Tensors cross to JAX and back with zero-copy
 DLPack; float64 tensors run under a local x64 context, so no JAX configuration is needed.

@@ -23,6 +23,16 @@ A call takes one of three routes (:meth:`LiftedFunction.apply`):
 Fake (meta) kernels obtain output shapes from geomjax itself with ``jax.eval_shape``. When geomjax
 rejects the inputs, the fake returns placeholders instead of raising, so under ``torch.compile``
 the real kernel raises geomjax's exception — with its original type — when the graph runs.
+
+Real options (``float`` / ``float[]`` statics: a radius, a smoothing, a length scale, a lattice
+origin) reach the custom op as float64 tensors (0-d, or 1-d for a sequence), not as ``float``
+schema arguments: under
+``torch.compile(dynamic=True)`` a Python float is symbolic, and a ``float`` argument of a custom op
+would specialise the graph on its value (a recompilation per value). A tensor is traced instead,
+so one graph serves every value; the kernel reads it back as Python numbers before geomjax runs, so
+geomjax checks the value (and raises its documented exception) when the graph runs. The fake
+kernel cannot read it: it takes the option's default for the output shapes, which no real
+option changes. Eager calls never build these tensors.
 """
 
 from __future__ import annotations
@@ -46,6 +56,30 @@ NAMESPACE = "geomjax"
 # ---------------------------------------------------------------------------------------------
 
 TENSOR, OPTIONAL_TENSOR, TENSOR_LIST = "Tensor", "Tensor?", "Tensor[]"
+
+# Static options carried into the custom op as float64 tensors (see the module docstring).
+REAL_OPTION_TYPES = {"float": TENSOR, "float?": OPTIONAL_TENSOR, "float[]": TENSOR, "float[]?": OPTIONAL_TENSOR}
+
+
+def _option_tensor(value):
+    """A real option as the custom op takes it: a 0-d float64 tensor, or a 1-d one for a
+    sequence of reals (``None`` stays ``None``).
+
+    Written as a tensor plus the number: under ``torch.compile`` a symbolic float is kept
+    symbolic only where it feeds arithmetic that AOT autograd's "tensorify" pass rewrites into
+    tensor arithmetic (add, mul, ...). It specialises the graph on the value where it feeds
+    anything else, ``torch.scalar_tensor`` and ``torch.tensor`` included. float64 holds every
+    Python float exactly, and -0.0 is the identity of addition for every float (-0.0 too)."""
+    if value is None or isinstance(value, torch.Tensor):
+        return value
+    if isinstance(value, (tuple, list)):
+        return torch.stack([_option_tensor(v) for v in value]) if value else torch.zeros(0, dtype=torch.float64)
+    return torch.full((), -0.0, dtype=torch.float64) + value
+
+
+def _read_option(tensor) -> float | tuple:
+    """A real option back from its tensor: a float, or a tuple of floats."""
+    return float(tensor.item()) if tensor.ndim == 0 else tuple(float(v) for v in tensor.tolist())
 
 
 def _flatten(slots, kinds) -> list:
@@ -414,13 +448,21 @@ class LiftedFunction:
             leading dimension is data-dependent. Such a function runs eagerly (geomjax cannot
             trace it), is not differentiable (no autograd formula; inputs are detached), and its
             fake kernel gives each output an unbacked leading size for ``torch.compile``.
+        prepare: ``f(slots, statics) -> pytree of JAX arrays``, built on the host from a call's
+            concrete tensors; see :func:`prepared`.
+        real_placeholders: per static option, the value the fake kernel uses for a real option
+            (``float``, ``float[]``: for each entry), whose tensor it cannot read (default 1.0;
+            ignored for the other options).
 
-    The op ``geomjax::<name>`` takes the slots, the statics and ``bool[] requires_grad`` (which
-    leaves require grad: the kernel rejects non-differentiable ones, so the reference's
-    ``ValueError`` is raised in compiled graphs too) and returns the outputs.
+    The op ``geomjax::<name>`` takes the slots, the statics (real options as 0-d float64 tensors,
+    see :meth:`op_arguments`) and ``bool[] requires_grad`` (which leaves require grad: the kernel
+    rejects non-differentiable ones, so the reference's ``ValueError`` is raised in compiled graphs
+    too) and returns the outputs.
     """
 
-    def __init__(self, name, fn, slots, statics, num_outputs, *, nondifferentiable=(), eager_vjp_levels=0, dynamic_outputs=None, prepare=None):
+    def __init__(
+        self, name, fn, slots, statics, num_outputs, *, nondifferentiable=(), eager_vjp_levels=0, dynamic_outputs=None, prepare=None, real_placeholders=None
+    ):
         self.name = name
         self.fn = fn
         self.slot_names = tuple(n for n, _ in slots)
@@ -431,6 +473,9 @@ class LiftedFunction:
         self.nondifferentiable = frozenset(nondifferentiable)
         self._num_slots = len(slots)
         self._num_statics = len(statics)
+        self._real_statics = tuple(t in REAL_OPTION_TYPES for t in self.static_types)
+        placeholders = real_placeholders if real_placeholders is not None else [1.0] * len(statics)
+        self._real_placeholders = tuple(p if real else None for p, real in zip(placeholders, self._real_statics))
         self._has_lists = TENSOR_LIST in self.kinds
         self._shape_cache = {}
         self._vjp = self._jvp = self._batched = None
@@ -451,7 +496,7 @@ class LiftedFunction:
         if dynamic_outputs is not None:
             self._forward_jit = lambda slots, statics, wrt, extra: (_distinct_outputs(tuple(_with_prepared(extra, fn, slots, statics)), slots), ())
 
-        arguments = [f"{kind} {n}" for n, kind in slots] + [f"{t} {n}" for n, t in statics] + ["bool[] requires_grad"]
+        arguments = [f"{kind} {n}" for n, kind in slots] + [f"{REAL_OPTION_TYPES.get(t, t)} {n}" for n, t in statics] + ["bool[] requires_grad"]
         if num_outputs is None:
             returns = "Tensor[]"
         elif num_outputs == 1:
@@ -486,11 +531,15 @@ class LiftedFunction:
         leaves = _flatten(slots, self.kinds) if self._has_lists else slots
         requires_grad = [x is not None and x.requires_grad for x in leaves]
         if _under_functorch() and self.dynamic_outputs is None:
+            statics = self._read_real_options(statics)
             self._check_inputs(slots, leaves, requires_grad)
             outputs = _FunctorchAutograd.apply(self, statics, self._list_lengths(slots), *leaves)
             return list(outputs) if self.num_outputs is None else tuple(outputs)
         if not _plain_eager(leaves):
             return self._call_op(slots, statics, requires_grad)
+        # The op's own backward (run eagerly) passes its real options on as tensors; JAX takes
+        # them as numbers.
+        statics = self._read_real_options(statics)
         self._check_inputs(slots, leaves, requires_grad)
         wrt = tuple(requires_grad) if torch.is_grad_enabled() else (False,) * len(leaves)
         if any(wrt):
@@ -501,8 +550,18 @@ class LiftedFunction:
             outputs, _ = self._run_forward(slots, leaves, statics, wrt)
         return list(outputs) if self.num_outputs is None else tuple(outputs)
 
+    def op_arguments(self, slots, statics, requires_grad) -> tuple:
+        """The custom op's arguments for a call: the slots, the statics (real options as 0-d
+        float64 tensors) and ``requires_grad``."""
+        options = (_option_tensor(v) if real else v for v, real in zip(statics, self._real_statics))
+        return (*slots, *options, list(requires_grad))
+
+    def _read_real_options(self, statics) -> tuple:
+        """``statics`` with real options given as tensors read back as Python floats."""
+        return tuple(_read_option(v) if real and isinstance(v, torch.Tensor) else v for v, real in zip(statics, self._real_statics))
+
     def _call_op(self, slots, statics, requires_grad):
-        result = self.op(*slots, *statics, requires_grad)
+        result = self.op(*self.op_arguments(slots, statics, requires_grad))
         if self.num_outputs is None:
             return list(result)
         return (result,) if self.num_outputs == 1 else tuple(result)
@@ -566,12 +625,26 @@ class LiftedFunction:
             return [to_torch(g, device) for g in grads]
 
     def _split(self, args):
+        """The op's arguments as ``(slots, statics)``; real options stay tensors."""
         slots = args[: self._num_slots]
         statics = tuple(_hashable(v) for v in args[self._num_slots : self._num_slots + self._num_statics])
         return slots, statics
 
+    def _shape_statics(self, statics) -> tuple:
+        """``statics`` for computing output shapes: real options given as (possibly fake) tensors
+        take their placeholders (a sequence: one per entry). No real option changes an output's
+        shape or dtype."""
+
+        def placeholder(value, real, stand_in):
+            if not (real and isinstance(value, torch.Tensor)):
+                return value
+            return stand_in if value.ndim == 0 else (stand_in,) * int(value.shape[0])
+
+        return tuple(placeholder(*entry) for entry in zip(statics, self._real_statics, self._real_placeholders))
+
     def _kernel(self, *args):
         slots, statics = self._split(args)
+        statics = self._read_real_options(statics)
         leaves = _flatten(slots, self.kinds) if self._has_lists else slots
         self._check_inputs(slots, leaves, args[-1])
         # The same XLA program as an eager call with the same leaves requiring grad (whose forward
@@ -604,7 +677,7 @@ class LiftedFunction:
 
     def _fake(self, *args):
         slots, statics = self._split(args)
-        statics = _concrete(statics)
+        statics = _concrete(self._shape_statics(statics))
         leaves = _flatten(slots, self.kinds)
         device = self._device_of(leaves)
         if self.dynamic_outputs is not None:
@@ -623,6 +696,7 @@ class LiftedFunction:
         return outputs[0] if self.num_outputs == 1 else tuple(outputs)
 
     def _output_specs(self, slots, leaves, statics):
+        statics = self._shape_statics(statics)
         shapes = tuple(None if x is None else (tuple(int(d) for d in x.shape), x.dtype) for x in leaves)
         key = (shapes, self._list_lengths(slots), statics, jax.config.jax_enable_x64)
         if key in self._shape_cache:
@@ -733,6 +807,7 @@ class LiftedFunction:
             [*zip(self.static_names, self.static_types), *((f"{name}_{depth}", "bool[]") for name in extra_statics)],
             num_outputs,
             prepare=prepare,
+            real_placeholders=[*self._real_placeholders, *([None] * len(extra_statics))],
             **options,
         )
 

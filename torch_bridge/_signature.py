@@ -331,6 +331,13 @@ class BridgedOp:
         self._num_slots, self._num_statics = len(slots), len(statics)
         self._normalizers = tuple(_static_normalizer(p.static_type) if p.static_type is not None else None for p in params)
         self._sequence_normalizers = tuple(_static_normalizer(statics[p.sequence_slot][1]) if p.sequence_slot is not None else None for p in params)
+        # The fake kernel's stand-in for a real option it cannot read: the default, else 1.0
+        # (for each entry of a sequence).
+        real_placeholders: list[float | None] = [None] * len(statics)
+        for p in params:
+            if p.static_slot is not None:
+                default = p.default
+                real_placeholders[p.static_slot] = float(default) if isinstance(default, (int, float)) and not isinstance(default, bool) else 1.0
         self.lifted = LiftedFunction(
             self.name,
             self._call_geomjax,
@@ -342,6 +349,7 @@ class BridgedOp:
             eager_vjp_levels=0 if dynamic_outputs is not None else 2,
             dynamic_outputs=None if dynamic_outputs is None else lambda slots, statics: dynamic_outputs(self._geomjax_kwargs(slots, statics)),
             prepare=self._prepare if self.prepared else None,
+            real_placeholders=real_placeholders,
         )
 
     def _prepare(self, slots, statics) -> dict:

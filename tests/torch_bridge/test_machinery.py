@@ -51,7 +51,7 @@ def test_generated_signature_follows_the_table_entry():
     assert str(signature) == "(points, *, scale=2.0, powers=(3,))"
     assert toy.__name__ == "bridge_test_toy" and toy.__module__ == "torch_bridge"
     assert str(TOY.lifted.op._schema) == (
-        "geomjax::bridge_test_toy(Tensor points, float scale, int[] powers, bool[] requires_grad) -> (Tensor, Tensor, Tensor)"
+        "geomjax::bridge_test_toy(Tensor points, Tensor scale, int[] powers, bool[] requires_grad) -> (Tensor, Tensor, Tensor)"
     )
 
 
@@ -100,9 +100,9 @@ def test_signatures_are_derived_from_geomjax_with_table_overrides():
 def test_union_annotations_split_into_tensor_and_static_slots():
     op = torch_bridge.morph_points.bridged_op
     schema = str(op.lifted.op._schema)
-    assert "Tensor? radius" in schema and "float? radius_value" in schema
+    assert "Tensor? radius" in schema and "Tensor? radius_value" in schema  # a real option travels as a 0-d tensor
     ffd_schema = str(torch_bridge.free_form_deform_points.bridged_op.lifted.op._schema)
-    assert "Tensor? origin" in ffd_schema and "float[]? origin_value" in ffd_schema
+    assert "Tensor? origin" in ffd_schema and "Tensor? origin_value" in ffd_schema
 
 
 def test_bad_table_entries_are_rejected():
@@ -180,9 +180,9 @@ def test_backward_ops_are_registered_before_first_use():
 
 def test_toy_opcheck_and_compile():
     points = _points().requires_grad_()
-    torch.library.opcheck(TOY.lifted.op, (points, 2.0, [3], [True]))
+    torch.library.opcheck(TOY.lifted.op, TOY.lifted.op_arguments((points,), (2.0, (3,)), [True]))
     cotangents = [torch.ones_like(points).requires_grad_(), torch.ones((), dtype=points.dtype)]
-    torch.library.opcheck(TOY.lifted.vjp.op, (points, cotangents, 2.0, [3], [True, False, True], [True], [True, True, False]))
+    torch.library.opcheck(TOY.lifted.vjp.op, TOY.lifted.vjp.op_arguments((points, cotangents), (2.0, (3,), (True, False, True), (True,)), [True, True, False]))
     torch._dynamo.reset()
     compiled = torch.compile(lambda p: toy(p, powers=[1, 3]), fullgraph=True, backend="aot_eager")
     for ours, theirs in zip(compiled(points), toy(points, powers=[1, 3])):

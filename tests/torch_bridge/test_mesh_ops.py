@@ -117,7 +117,7 @@ def test_sdf_compiled_equals_eager_and_opcheck():
     torch.testing.assert_close(compiled_points.grad, eager_points.grad, rtol=1e-12, atol=1e-14)
     op = torch_bridge.signed_distance_field.bridged_op
     slots, statics = op.bind([VERTICES, FACES, points.requires_grad_(), 1e8, False, "jax"])
-    torch.library.opcheck(op.lifted.op, (*slots, *statics, [False, False, True]))
+    torch.library.opcheck(op.lifted.op, op.lifted.op_arguments(slots, statics, [False, False, True]))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -358,7 +358,7 @@ def test_opcheck_forward(name):
     for grad in (False, True):
         inputs = with_grad(base, differentiable(name, base) if grad else [])
         slots, statics, requires_grad = op_arguments(name, inputs)
-        torch.library.opcheck(lifted.op, (*slots, *statics, requires_grad))
+        torch.library.opcheck(lifted.op, lifted.op_arguments(slots, statics, requires_grad))
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -371,7 +371,7 @@ def test_opcheck_backward_op(name):
     output = public(name)(**inputs)
     cotangent = torch.linspace(-1.0, 1.0, output.numel(), dtype=torch.float64).reshape(output.shape).requires_grad_()
     vjp = OP_BY_NAME[name].lifted.vjp
-    arguments = (*slots, [cotangent], *statics, [True], requires_grad, [*requires_grad, True])
+    arguments = vjp.op_arguments((*slots, [cotangent]), (*statics, [True], requires_grad), [*requires_grad, True])
     torch.library.opcheck(vjp.op, arguments)
     grads = vjp.op(*arguments)
     expected = torch.autograd.grad(output, [x for x in slots if x is not None and x.requires_grad], cotangent)
