@@ -188,7 +188,7 @@ REGISTRY: Mapping[str, OpDeclaration] = _declare(
         "free_form_deform_points",
         "geomjax.deform.ffd",
         _JAX_AND_WARP,
-        {"cpu": "warp", "cpu/bernstein": "jax", "gpu": "warp"},
+        {"cpu": "warp", "cpu/bernstein": "jax", "gpu": "warp", "cpu/general": "jax", "gpu/general": "jax"},
         "benchmarks/bench_ffd.py",
         mesh_method="free_form_deform",
     ),

@@ -1,10 +1,17 @@
 """Warp kernels for lattice free-form deformation, exposed to JAX through ``jax.custom_vjp``.
 
-Inputs arrive validated and normalised: points ``(B, N, D)`` with ``D <= 3``, lattices
-``(B, n_1, ..., n_D, D)``, box vectors ``(B, D)`` (gradients already stopped). One thread per
-point builds per-axis basis tables (weights and their derivatives for at most
-``MAX_AXIS_NODES`` supporting nodes per axis), then loops over the tensor product of the
-supporting nodes. Missing axes (``D < 3``) are padded with one node of weight one.
+Inputs arrive validated and normalised: points ``(B, N, D)``, lattices ``(B, n_1, ..., n_D, D)``,
+box vectors ``(B, D)`` (gradients already stopped). One thread per point.
+
+Two kernel sets compute the same sums:
+
+* the *fixed* kernels (``D <= 3``, at most ``MAX_AXIS_NODES`` Bernstein nodes per axis, which is
+  every common lattice): per-axis basis tables (weights and their derivatives) in registers,
+  then nested loops over the tensor product of the supporting nodes; missing axes are padded
+  with one node of weight one;
+* the *general* kernels (any ``D``, any node count), in ``_ffd_general.py``: a Warp module of
+  their own, built only when a lattice needs them, so the common kernels' first build stays
+  small.
 
 Kernels: the lattice map (the field, zero outside the box) and its transpose in one kernel (the
 lattice adjoint, which scatters ``w * g`` into a zeroed buffer with atomics), and a point
@@ -21,10 +28,11 @@ import jax.numpy as jnp
 from ._wrap import KernelFamily, with_adjoint
 from ._wrap import warp as wp
 
-__all__ = ["free_form_deform_field", "MAX_AXIS_NODES", "BASIS_CODES"]
+__all__ = ["free_form_deform_field", "MAX_AXIS_NODES", "MAX_FIXED_DIMS", "BASIS_CODES"]
 
 # Size of the per-thread basis tables: bounds the Bernstein nodes per axis (local bases use 2 or 4).
 MAX_AXIS_NODES = 32
+MAX_FIXED_DIMS = 3  # the fixed kernels' axes; more take the general kernels (_ffd_general.py)
 BASIS_CODES = {"bernstein": 0, "bspline": 1, "linear": 2, "cubic_hermite": 3, "quintic_hermite": 4}
 _TABLE = wp.constant(MAX_AXIS_NODES)
 
@@ -220,14 +228,21 @@ def _ffd_point_adjoint_kernel(
 
 
 def _types(s):
-    arrays = {name: wp.array3d(dtype=s) for name in ("points", "values", "out", "lattice", "field_adj", "points_adj")}
-    return arrays | {"origin": wp.array2d(dtype=s), "extent": wp.array2d(dtype=s)}
+    names = ("points", "values", "out", "lattice", "field_adj", "points_adj", "weights", "slopes")  # (scratch tables: _ffd_general.py)
+    return {name: wp.array3d(dtype=s) for name in names} | {"origin": wp.array2d(dtype=s), "extent": wp.array2d(dtype=s)}
 
 
 # Every overload is registered now, so the module is built (and cached) once.
 _lattice_map = KernelFamily(_ffd_kernel, _types, outputs=("out",))
 _lattice_map_transpose = KernelFamily(_ffd_kernel, _types, outputs=("out",), accumulate=("out",))
 _point_adjoint = KernelFamily(_ffd_point_adjoint_kernel, _types, outputs=("points_adj",))
+
+
+def _needs_general(lattice_shape: tuple[int, ...], basis: str) -> bool:
+    """Whether the fixed kernels cannot take this lattice (more than 3 axes, or more Bernstein
+    nodes on an axis than their tables hold)."""
+    resolution = lattice_shape[1:-1]
+    return len(resolution) > MAX_FIXED_DIMS or (basis == "bernstein" and max(resolution) > MAX_AXIS_NODES)
 
 
 def _static(lattice_shape: tuple[int, ...], basis: str) -> tuple[int, int, int, int]:
@@ -244,7 +259,12 @@ def _field_forward(points, lattice, origin, extent, basis):
     num_batch, num_points = points.shape[:2]
     if num_batch * num_points == 0:
         return jnp.zeros_like(points), ()
-    static, launch = _static(lattice.shape, basis), (num_batch, num_points)
+    launch = (num_batch, num_points)
+    if _needs_general(lattice.shape, basis):
+        from ._ffd_general import general_field
+
+        return general_field(points, _flat(lattice), origin, extent, lattice.shape, basis), ()
+    static = _static(lattice.shape, basis)
     (field,) = _lattice_map(points.dtype)(points, _flat(lattice), origin, extent, *static, 0, launch=launch, shapes={"out": points.shape})
     return field, ()
 
@@ -254,7 +274,13 @@ def _field_adjoint(args, saved, field_adj):
     num_batch, num_points = points.shape[:2]
     if num_batch * num_points == 0:
         return jnp.zeros_like(points), jnp.zeros_like(lattice)
-    static, flat, launch = _static(lattice.shape, basis), _flat(lattice), (num_batch, num_points)
+    flat, launch = _flat(lattice), (num_batch, num_points)
+    if _needs_general(lattice.shape, basis):
+        from ._ffd_general import general_field_adjoint
+
+        points_adj, lattice_adj = general_field_adjoint(points, flat, origin, extent, field_adj, lattice.shape, basis)
+        return points_adj, lattice_adj.reshape(lattice.shape)
+    static = _static(lattice.shape, basis)
     (lattice_adj,) = _lattice_map_transpose(points.dtype)(points, field_adj, origin, extent, *static, 1, launch=launch, shapes={"out": flat.shape})
     (points_adj,) = _point_adjoint(points.dtype)(points, flat, origin, extent, field_adj, *static, launch=launch, shapes={"points_adj": points.shape})
     return points_adj, lattice_adj.reshape(lattice.shape)
@@ -268,10 +294,13 @@ def free_form_deform_field(points: jax.Array, lattice: jax.Array, origin: jax.Ar
     """FFD displacement field ``(B, N, D)``: zero outside the box ``[origin, origin + extent]``.
 
     Args:
-        points: ``(B, N, D)``, float32 or float64, ``1 <= D <= 3``.
+        points: ``(B, N, D)``, float32 or float64, ``D >= 1``.
         lattice: ``(B, n_1, ..., n_D, D)`` control displacements, same dtype.
         origin, extent: ``(B, D)`` box corners and edge lengths (not differentiated).
-        basis: a key of ``BASIS_CODES``; Bernstein needs ``n_d <= MAX_AXIS_NODES``.
+        basis: a key of ``BASIS_CODES``. ``D > 3`` or more than ``MAX_AXIS_NODES`` Bernstein
+            nodes on an axis take the general kernels (``_ffd_general.py``), which also
+            allocate ``2 B N D max(n_d)`` scratch values (``4`` instead of ``max(n_d)`` for a
+            local basis).
 
     Differentiable once in reverse mode (``jax.custom_vjp``) in ``points`` and ``lattice``;
     ``jit`` and ``vmap`` (sequential) compatible.

@@ -79,10 +79,11 @@ def free_form_deform_points(
         implementation: ``"jax"`` (also ``"torch"``), ``"warp"`` or ``None``. ``None`` picks the
             backend measured faster by ``benchmarks/bench_ffd.py``: on CPU JAX for
             ``"bernstein"`` and Warp for the four local bases; on GPU Warp (the reference's
-            choice; not measured here). It falls back to JAX when Warp is missing or cannot take
-            the input (``D > 3``, or more than 32 Bernstein nodes on an axis). Explicit
-            ``"warp"`` supports ``D <= 3`` and at most 32 Bernstein nodes per axis, and values
-            and first-order reverse mode only (see Differentiability).
+            choice; not measured here), and JAX for lattices beyond Warp's fixed kernels
+            (``D > 3``, or more than 32 Bernstein nodes on an axis), or without warp-lang.
+            Explicit ``"warp"`` takes every lattice (those through its general kernels, which
+            also allocate ``2 B N D max(n_d)`` scratch values), with values and first-order
+            reverse mode only (see Differentiability).
 
     Returns:
         Deformed points with the shape and dtype of ``points``.
@@ -93,8 +94,7 @@ def free_form_deform_points(
             sequence entry.
         ValueError: bad ranks or shapes (lattice rank, last lattice dim, box shapes), mixed
             batched/unbatched inputs, too few lattice nodes, unknown ``basis``, non-finite or
-            non-positive sequence values, ``implementation="warp"`` with ``D > 3`` or too many
-            Bernstein nodes.
+            non-positive sequence values.
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
@@ -131,19 +131,12 @@ def free_form_deform_points(
     extent = _check_box("extent", extent, points, batched, positive=True)
     point_weights = check_point_weights(point_weights, points)
 
-    warp_fits = num_dims <= WARP_MAX_DIMS and (basis != "bernstein" or max(resolution) <= WARP_MAX_BERNSTEIN_NODES)
-    backend = select_implementation(
-        "free_form_deform_points",
-        implementation,
-        platform=platform_of(points),
-        variant=basis,
-        warp_unsupported=None
-        if warp_fits
-        else (
-            f"supports D <= {WARP_MAX_DIMS} and at most {WARP_MAX_BERNSTEIN_NODES} Bernstein nodes per axis, "
-            f"got D={num_dims}, basis={basis!r}, resolution {resolution}"
-        ),
-    )
+    # Lattices beyond Warp's fixed kernels (more axes, or more Bernstein nodes than their
+    # register tables hold) run its general kernels when asked for; by default JAX (measured
+    # faster for Bernstein on CPU, and the general kernels are not measured).
+    general = num_dims > WARP_MAX_DIMS or (basis == "bernstein" and max(resolution) > WARP_MAX_BERNSTEIN_NODES)
+    variant = "general" if general else basis
+    backend = select_implementation("free_form_deform_points", implementation, platform=platform_of(points), variant=variant)
 
     return _free_form_deform(points, lattice, origin, extent, point_weights, basis=basis, backend=backend, batched=batched)
 

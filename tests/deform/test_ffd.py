@@ -569,15 +569,3 @@ def test_torch_alias_and_missing_warp(monkeypatch):
     # The default falls back to JAX without Warp, even for bases whose CPU default is Warp.
     out = free_form_deform_points(points, jnp.ones((4, 4, 4, 3)), origin=[0.0] * 3, extent=[1.0] * 3, basis="bspline")
     np.testing.assert_allclose(np.asarray(out), np.asarray(points) + 1.0, atol=1e-15)
-
-
-def test_warp_rejects_unsupported_sizes_and_default_falls_back():
-    points4 = rng_array(34, (5, 4), 0, 1)
-    lattice4 = rng_array(35, (2, 2, 2, 2, 4), -0.1, 0.1)
-    with pytest.raises(ValueError, match="warp"):
-        free_form_deform_points(points4, lattice4, origin=[0.0] * 4, extent=[1.0] * 4, implementation="warp")
-    default = free_form_deform_points(points4, lattice4, origin=[0.0] * 4, extent=[1.0] * 4, basis="linear")
-    np.testing.assert_array_equal(np.asarray(default), np.asarray(ffd(points4, lattice4, "linear")))
-    big = jnp.zeros((ffd_module.WARP_MAX_BERNSTEIN_NODES + 1, 1))
-    with pytest.raises(ValueError, match="warp"):
-        free_form_deform_points(jnp.zeros((3, 1)), big, origin=[0.0], extent=[1.0], implementation="warp")

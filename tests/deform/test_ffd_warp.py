@@ -167,3 +167,66 @@ def test_default_backend_rule_on_cpu(monkeypatch):
         assert calls == ["bspline"]  # CPU: Warp for local bases, JAX for Bernstein (bench_ffd.py)
     else:
         assert calls == ["bspline", "bernstein"]
+
+
+# Lattices beyond the fixed kernels (more than 3 axes, more than 32 Bernstein nodes on an axis):
+# the general kernels, against the closed forms of test_ffd.py (binomial Bernstein weights,
+# explicit local-basis loops) and finite differences.
+GENERAL_CASES = {
+    "4-D bernstein float64": ("bernstein", (3, 4, 5, 2), jnp.float64),
+    "4-D bspline float32": ("bspline", (4, 5, 6, 4), jnp.float32),
+    "4-D quintic_hermite float64": ("quintic_hermite", (3, 4, 5, 2), jnp.float64),
+    "1-D bernstein, 133 nodes, float64": ("bernstein", (133,), jnp.float64),
+    "2-D bernstein, 40 x 3 nodes, float32": ("bernstein", (40, 3), jnp.float32),
+}
+
+
+@pytest.mark.parametrize("case", GENERAL_CASES)
+def test_general_kernels_match_the_closed_forms(case):
+    from .test_ffd import bernstein_closed_form, local_reference
+
+    basis, resolution, dtype = GENERAL_CASES[case]
+    dims = len(resolution)
+    assert warp_ffd._needs_general((1, *resolution, dims), basis)
+    points = rng_array(40, (12, dims), -0.1, 1.1, dtype)  # some outside the unit box
+    lattice = rng_array(41, resolution + (dims,), -0.5, 0.5, dtype)
+    out = ffd(points, lattice, basis, "warp")
+    assert out.dtype == dtype
+    p64, lat64 = np.asarray(points, np.float64), np.asarray(lattice, np.float64)
+    if basis == "bernstein":
+        inside = np.all((p64 >= 0) & (p64 <= 1), axis=1)
+        expected = np.where(inside[:, None], bernstein_closed_form(p64, lat64, np.zeros(dims), np.ones(dims)), p64)
+    else:
+        expected = local_reference(p64, lat64, basis)
+    # Convex combinations of lattice values (|v| <= 1/2): rounding grows with the sum of the
+    # node counts (one recurrence step each) times eps, plus the points' own rounding.
+    eps = float(jnp.finfo(dtype).eps)
+    np.testing.assert_allclose(np.asarray(out, np.float64), expected, rtol=0, atol=8 * sum(resolution) * eps)
+    if dtype == jnp.float64:
+        # Reverse mode (the Warp adjoint kernels) against finite differences, away from faces.
+        inner = rng_array(42, (4, dims), 0.1, 0.9, dtype)
+        step = 1e-6 if max(resolution) > 32 else 1e-5  # degree-132 derivatives are ~n^2 larger
+        check_grads(lambda p, lat: ffd(p, lat, basis, "warp"), (inner, lattice), order=1, modes=("rev",), eps=step, atol=1e-5, rtol=1e-5)
+
+
+def test_default_runs_jax_beyond_the_fixed_kernels(monkeypatch):
+    import geomjax.deform.ffd as ffd_module
+
+    # geomjax decides without importing Warp: its copy of the fixed kernels' limits must match.
+    assert (ffd_module.WARP_MAX_DIMS, ffd_module.WARP_MAX_BERNSTEIN_NODES) == (warp_ffd.MAX_FIXED_DIMS, warp_ffd.MAX_AXIS_NODES)
+    calls = []
+    original = warp_ffd.free_form_deform_field
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs["basis"])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(warp_ffd, "free_form_deform_field", spy)
+    points4 = rng_array(34, (5, 4), 0, 1)
+    lattice4 = rng_array(35, (2, 2, 2, 2, 4), -0.1, 0.1)
+    default = free_form_deform_points(points4, lattice4, origin=[0.0] * 4, extent=[1.0] * 4, basis="linear")
+    np.testing.assert_array_equal(np.asarray(default), np.asarray(ffd(points4, lattice4, "linear", "jax")))
+    free_form_deform_points(jnp.zeros((3, 1)), jnp.zeros((33, 1)), origin=[0.0], extent=[1.0])
+    assert calls == []  # neither lattice went to Warp by default
+    ffd(points4, lattice4, "linear", "warp")
+    assert calls == ["linear"]
