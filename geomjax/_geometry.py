@@ -25,7 +25,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-__all__ = ["closest_point_on_triangle", "overflow_safe_norm", "ray_plane_intersection", "ray_triangle_intersection", "triangle_normal", "winding_numbers"]
+__all__ = [
+    "closest_point_on_triangle",
+    "overflow_safe_norm",
+    "scaled_triangle",
+    "ray_plane_intersection",
+    "ray_triangle_intersection",
+    "triangle_normal",
+    "winding_numbers",
+]
 
 # One point or vector per leading index; the ray functions take five of them.
 Vector = Float[Array, "*batch 3"]
@@ -55,7 +63,7 @@ def _prescale(*coordinates):
     return jax.lax.stop_gradient(jnp.where(big, jnp.asarray(0.25, dtype), jnp.asarray(1.0, dtype)))
 
 
-def _scaled_triangle(a, b, c, *extra):
+def scaled_triangle(a, b, c, *extra):
     """Triangle edges in triangle units: ``(ab, ac, bc, pre, unit)``.
 
     ``pre`` (1 or 1/4) and ``unit`` (a power of two) are ``(..., 1)`` factors, not differentiated;
@@ -86,9 +94,9 @@ def closest_point_on_triangle(
     """Closest point to ``p`` on the solid triangle ``(a, b, c)`` and its barycentric coordinates.
 
     If the orthogonal projection of ``p`` onto the triangle's plane lies inside the triangle
-    (barycentric coordinates all non-negative, computed as Lagrange-identity numerators
-    ``(e1 x (p - x)) . (e1 x e2)`` around each vertex, so no quadratic terms cancel), that
-    projection is the answer. Otherwise the answer is the best of the three clamped edge
+    (barycentric coordinates all non-negative, computed as triple products
+    ``(e1 x e2) . (e1 x (p - x))`` around each vertex, so that the small coordinates of a skinny
+    triangle keep their relative accuracy), that projection is the answer. Otherwise the answer is the best of the three clamped edge
     projections (edges ``AB``, ``AC``, ``BC``; vertex regions fall out of the clamping; an exact
     tie keeps the first). Degenerate triangles (collinear or coincident vertices) therefore
     reduce to the closest point on their longest extent, with finite gradients.
@@ -119,16 +127,19 @@ def closest_point_on_triangle(
          [0.  0.5 0.5]]
     """
     p, a, b, c = jnp.broadcast_arrays(p, a, b, c)
-    ab, ac, bc, pre, unit = _scaled_triangle(a, b, c, p)
+    ab, ac, bc, pre, unit = scaled_triangle(a, b, c, p)
     ap, bp = _to_units(p, a, pre, unit), _to_units(p, b, pre, unit)
 
-    # Projected barycentric numerators (Lagrange identity), each around its own vertex.
+    # Projected barycentric numerators, each around its own vertex, as triple products with the
+    # normal n = ab x ac: n . (ab x ap) for c, n . (ap x ac) for b, n . (bc x bp) for a. Their
+    # expanded (Lagrange identity) forms, differences of products of dot products, cancel
+    # catastrophically on skinny triangles: a coordinate of size 1/aspect would drown in the
+    # rounding of terms of size 1.
+    normal = jnp.cross(ab, ac)
+    weight_c = _dot(normal, jnp.cross(ab, ap))
+    weight_b = _dot(normal, jnp.cross(ap, ac))
+    weight_a = _dot(normal, jnp.cross(bc, bp))
     ab2, ac2, bc2 = _dot(ab, ab), _dot(ac, ac), _dot(bc, bc)
-    ab_ac, ab_bc = _dot(ab, ac), _dot(ab, bc)
-    weight_c = ab2 * _dot(ac, ap) - ab_ac * _dot(ab, ap)
-    weight_b = ac2 * _dot(ab, ap) - ab_ac * _dot(ac, ap)
-    # Around b with edges (c - b, a - b): |bc|^2 ((a - b) . bp) - (bc . (a - b)) (bc . bp).
-    weight_a = -bc2 * _dot(ab, bp) + ab_bc * _dot(bc, bp)
     total = weight_a + weight_b + weight_c
     inside = (weight_a >= 0) & (weight_b >= 0) & (weight_c >= 0) & (total > 0)
     interior = jnp.stack([weight_a, weight_b, weight_c], axis=-1)
@@ -149,7 +160,13 @@ def closest_point_on_triangle(
     use_ac = ~use_ab & (d_ac <= d_bc)
     boundary = jnp.where(use_ab[..., None], w_ab, jnp.where(use_ac[..., None], w_ac, w_bc))
     weights = jnp.where(inside[..., None], interior, boundary)
-    point = weights[..., 0:1] * a + weights[..., 1:2] * b + weights[..., 2:3] * c
+    on_boundary = boundary[..., 0:1] * a + boundary[..., 1:2] * b + boundary[..., 2:3] * c
+    # Inside, the point is p moved along the normal, not the weighted corners: its derivative is
+    # then the in-plane identity to rounding, where the corners' weights (derivatives of size
+    # 1 / height) would cancel to rounding times the aspect ratio on a skinny triangle.
+    height = _safe_divide(_dot(normal, ap), _dot(normal, normal), inside)
+    projected = p - height[..., None] * normal / unit / pre
+    point = jnp.where(inside[..., None], projected, on_boundary)
     return point, weights
 
 
@@ -205,7 +222,7 @@ def ray_plane_intersection(origin: Vector, direction: Vector, a: Vector, b: Vect
         -2.0 [-1.5  2.   0.5] True
     """
     origin, direction, a, b, c = jnp.broadcast_arrays(origin, direction, a, b, c)
-    ab, ac, _, pre, unit = _scaled_triangle(a, b, c, origin)
+    ab, ac, _, pre, unit = scaled_triangle(a, b, c, origin)
     ao = _to_units(origin, a, pre, unit)
     length = jnp.max(jnp.abs(direction), axis=-1)
     direction_scale = jax.lax.stop_gradient(_power_of_two_below(length))
@@ -238,7 +255,7 @@ def triangle_normal(a: Float[Array, "*batch 3"], b: Float[Array, "*batch 3"], c:
         [ 0.  0. -1.]
     """
     a, b, c = jnp.broadcast_arrays(a, b, c)
-    ab, ac, _, _, _ = _scaled_triangle(a, b, c)
+    ab, ac, _, _, _ = scaled_triangle(a, b, c)
     normal = jnp.cross(ab, ac)
     # Normalise by the largest component first so the squared norm cannot underflow.
     largest = jnp.max(jnp.abs(normal), axis=-1, keepdims=True)

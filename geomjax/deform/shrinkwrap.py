@@ -11,7 +11,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors
-from .._geometry import closest_point_on_triangle, overflow_safe_norm, triangle_normal
+from .._geometry import closest_point_on_triangle, overflow_safe_norm, scaled_triangle, triangle_normal
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
 from .._validate import (
     as_float_array,
@@ -60,6 +60,12 @@ def shrinkwrap_points(
       dtype). At least one triangle must be valid.
     * ``max_distance`` gates strictly on the distance to the un-offset surface: a point at
       distance ``>= max_distance`` is returned unchanged.
+    * Any finite coordinates: the validity test, both searches and the projection are scaled
+      by powers of two, so triangles with opposite-sign vertices near the largest float,
+      queries 1e20 triangle sizes away and distances whose squares overflow keep their
+      projections, finite derivatives and the nearest-face order. A skinny valid triangle
+      (aspect ratio up to about ``1 / eps``) keeps its interior projections, with the in-plane
+      identity as derivative.
     * The nearest face minimises the distance in the working dtype; faces sharing the nearest
       edge or vertex tie and the lowest index wins (the brute-force rule). float64 inputs are
       searched exactly by both backends; in float32 two distinct features equally near up to
@@ -203,16 +209,17 @@ def _check_bvh(bvh, target_points: jax.Array, target_faces: jax.Array) -> None:
 def valid_triangles(vertices: jax.Array, faces: jax.Array) -> jax.Array:
     """``(F,)`` bool: finite, non-zero extent and ``|AB x AC| > eps (longest edge)^2``.
 
-    Edges are divided by their largest component first, so the test does not depend on the
-    triangle's scale and cannot overflow or underflow.
+    Edges are taken in triangle units (coordinates quartered near the float maximum, then
+    differences scaled by a power of two near the triangle's size: the projection's own
+    scaling), so the test does not depend on the triangle's scale and cannot overflow or
+    underflow, even for vertices of opposite sign near the largest float.
     """
     vertices = jax.lax.stop_gradient(vertices)
     a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
-    ab, ac, bc = b - a, c - a, c - b
+    finite = jnp.all(jnp.isfinite(jnp.concatenate([a, b, c], axis=-1)), axis=-1)
+    ab, ac, bc, _, _ = scaled_triangle(a, b, c)
     extent = jnp.max(jnp.abs(jnp.concatenate([ab, ac, bc], axis=-1)), axis=-1)
-    usable = jnp.all(jnp.isfinite(jnp.concatenate([a, b, c], axis=-1)), axis=-1) & jnp.isfinite(extent) & (extent > 0)
-    scale = jnp.where(usable, extent, jnp.ones((), vertices.dtype))[:, None]
-    ab, ac, bc = ab / scale, ac / scale, bc / scale
+    usable = finite & (extent > 0)
     normal = jnp.cross(ab, ac)
     longest2 = jnp.maximum(jnp.maximum(jnp.sum(ab * ab, -1), jnp.sum(ac * ac, -1)), jnp.sum(bc * bc, -1))
     eps = jnp.finfo(vertices.dtype).eps
@@ -275,16 +282,29 @@ def nearest_faces_jax(points: jax.Array, vertices: jax.Array, faces: jax.Array, 
 
     Every point/face pair is measured with :func:`face_features` (in query blocks so memory
     stays bounded); among the faces sharing the nearest feature the lowest index wins.
+
+    Coordinates so large that a difference or a squared distance would overflow (beyond about
+    ``sqrt(max)``: 1e19 in float32, 1e154 in float64) are first scaled down, per query, by a
+    power of two: exact, so the order of the faces is kept, where overflowing distances would
+    all tie at infinity.
     """
     points, vertices = jax.lax.stop_gradient(points), jax.lax.stop_gradient(vertices)
+    dtype = points.dtype
     a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
     face_index = jnp.arange(faces.shape[0], dtype=faces.dtype)
-    inf = jnp.asarray(jnp.inf, points.dtype)
-    itemsize = jnp.dtype(points.dtype).itemsize
+    inf = jnp.asarray(jnp.inf, dtype)
+    itemsize = jnp.dtype(dtype).itemsize
     block = query_block_size(points.shape[0], faces.shape[0] * 3 * itemsize * 30)
+    # Per query, the power of two 2^-k that keeps |x|, |vertex|, their differences and the
+    # squared distances finite: k = 0 (no change at all) below 2^(maxexp / 2 - 2).
+    largest_vertex = jnp.max(jnp.where(valid[:, None, None], jnp.abs(jnp.stack([a, b, c], axis=1)), 0))
+    safe_exponent = jnp.finfo(dtype).maxexp // 2 - 2
 
     def block_nearest(p):
-        d2, first, second = face_features(p[:, None, :], a, b, c, faces, face_index)
+        _, exponent = jnp.frexp(jnp.max(jnp.abs(p), axis=-1) / 2 + largest_vertex / 2)
+        shrink = jnp.maximum(exponent + 1 - safe_exponent, 0)[:, None, None]
+        scaled = [jnp.ldexp(v[None], -shrink) for v in (a, b, c)]
+        d2, first, second = face_features(jnp.ldexp(p[:, None, :], -shrink), *scaled, faces, face_index)
         nearest = jnp.argmin(jnp.where(valid, d2, inf), axis=-1)[:, None]
         same = (first == jnp.take_along_axis(first, nearest, -1)) & (second == jnp.take_along_axis(second, nearest, -1))
         return jnp.argmax(same & valid, axis=-1).astype(jnp.int32)
@@ -299,10 +319,11 @@ def _search_frame(vertices: jax.Array, faces: jax.Array, valid: jax.Array):
     inf = jnp.asarray(jnp.inf, dtype)
     low = jnp.min(jnp.where(used[:, None], vertices, inf), axis=0)
     high = jnp.max(jnp.where(used[:, None], vertices, -inf), axis=0)
-    half = jnp.max(high - low) / 2
+    # Halves first: ``high - low`` overflows for coordinates of opposite signs near the float max.
+    half = jnp.max(high / 2 - low / 2)
     ok = jnp.isfinite(half) & (half > 0)
     one = jnp.ones((), dtype)
-    centre = jnp.where(ok, (low + high) / 2, 0)
+    centre = jnp.where(ok, low / 2 + high / 2, 0)
     _, exponent = jnp.frexp(jnp.where(ok, half, one))
     inv_scale = jnp.ldexp(one, -exponent)
     return used, centre, inv_scale

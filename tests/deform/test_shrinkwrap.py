@@ -153,6 +153,66 @@ def test_float64_near_ties_are_resolved_exactly(implementation):
         np.testing.assert_allclose(out[0, 2], 0.1, atol=1e-3)
 
 
+def _triangle(z, size, dtype):
+    return [[-size, -size, z], [size, -size, z], [0.0, size, z]]
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_extreme_coordinates_keep_projections_and_face_order(implementation, dtype):
+    eps, huge = float(jnp.finfo(dtype).eps), float(jnp.finfo(dtype).max) / 1.2
+    faces = jnp.asarray([[0, 1, 2]], jnp.int32)
+
+    def wrap(points, targets, target_faces=faces):
+        return shrinkwrap_points(jnp.asarray(points, dtype), jnp.asarray(targets, dtype), target_faces, implementation=implementation)
+
+    # A triangle whose edges span opposite signs near the largest float: its edges overflow
+    # when subtracted directly. In-plane projections, to rounding of the triangle's size.
+    out = np.asarray(wrap([[0.0, 0.0, 1.0], [huge / 2, -huge / 2, 5.0]], _triangle(0.0, huge, dtype)), np.float64)
+    np.testing.assert_allclose(out, [[0.0, 0.0, 0.0], [huge / 2, -huge / 2, 0.0]], rtol=0, atol=8 * eps * huge)
+    # 1e20 (float32: beyond sqrt(max)) from a unit triangle along its normal: the tangential
+    # position is kept, and the derivative is the in-plane identity.
+    unit = jnp.asarray(_triangle(0.0, 1.0, dtype), dtype)
+    far = jnp.asarray([[0.25, 0.25, 1e20], [0.1, -0.2, -1e20]], dtype)
+    np.testing.assert_allclose(np.asarray(wrap(far, unit)), [[0.25, 0.25, 0.0], [0.1, -0.2, 0.0]], rtol=0, atol=4 * eps)
+    gradient = jax.grad(lambda p: jnp.sum(wrap(p, unit)))(far)
+    np.testing.assert_allclose(np.asarray(gradient), [[1.0, 1.0, 0.0]] * 2, rtol=0, atol=4 * eps)
+    # Distances whose squares overflow still order the faces: the nearer triangle (index 1)
+    # wins at a tenth and at half of the largest coordinate.
+    two = jnp.asarray([[0, 1, 2], [3, 4, 5]], jnp.int32)
+    for near, query in ((huge / 10, huge / 5), (huge / 2, huge / 1.5)):
+        targets = _triangle(0.0, 1.0, dtype) + _triangle(near, 1.0, dtype)
+        out = np.asarray(wrap([[0.0, 0.0, query]], targets, two), np.float64)
+        np.testing.assert_allclose(out, [[0.0, 0.0, near]], rtol=4 * eps, atol=0)
+
+
+@pytest.mark.parametrize("implementation", BACKENDS)
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_skinny_and_multiscale_targets(implementation, dtype):
+    eps = float(jnp.finfo(dtype).eps)
+    # The skinniest triangle the validity rule keeps (|AB x AC| > eps longest^2), with aspect
+    # 1e7 in float64 (2e6 in float32): interior projections exact, derivative the in-plane identity.
+    height = 1e-7 if dtype == jnp.float64 else 5e-7
+    skinny = jnp.asarray([[0.0, 0, 0], [1, 0, 0], [0.5, height, 0]], dtype)
+    faces = jnp.asarray([[0, 1, 2]], jnp.int32)
+    assert bool(valid_triangles(skinny, faces)[0])
+    inside = jnp.asarray([[0.5, 0.5 * height, 0.3], [0.25, 0.25 * height, -0.1]], dtype)
+    out = shrinkwrap_points(inside, skinny, faces, implementation=implementation)
+    np.testing.assert_allclose(np.asarray(out)[:, :2], np.asarray(inside)[:, :2], rtol=4 * eps, atol=0)
+    np.testing.assert_allclose(np.asarray(out)[:, 2], 0.0, rtol=0, atol=4 * eps)  # moved along the normal: rounding of p
+    jacobian = jax.jacobian(lambda p: shrinkwrap_points(p, skinny, faces, implementation=implementation)[0])(inside[:1])
+    np.testing.assert_allclose(np.asarray(jacobian)[:, 0], np.diag([1.0, 1.0, 0.0]), rtol=0, atol=16 * eps)
+    # Far-apart targets of very different sizes: a query at the millimetre triangle keeps its
+    # local position (no loss to the metre triangle a million units away).
+    targets = jnp.asarray(_triangle(0.0, 1e-3, dtype) + [[1e6 + x, 1e6 + y, z] for x, y, z in _triangle(0.0, 1.0, dtype)], dtype)
+    two = jnp.asarray([[0, 1, 2], [3, 4, 5]], jnp.int32)
+    queries = jnp.asarray([[2e-4, 3e-4, 1e-4], [1e6 + 0.2, 1e6 + 0.3, 0.5]], dtype)
+    out = np.asarray(shrinkwrap_points(queries, targets, two, implementation=implementation), np.float64)
+    expected = np.asarray(queries, np.float64) * [1, 1, 0]
+    error = np.abs(out - expected)  # to rounding of each query's own coordinates
+    assert np.all(error <= 4 * eps * np.abs(np.asarray(queries, np.float64))), error
+
+
 @pytest.mark.parametrize("implementation", BACKENDS)
 def test_invalid_triangles_are_ignored(implementation):
     target = np.concatenate([SQUARE, [[0.5, 0.5, 0.9], [0.6, 0.5, 0.9], [0.7, 0.5, 0.9], [np.nan, 0, 1], [0.5, 0.4, 1.0]]])
