@@ -115,9 +115,12 @@ def simplex_strain_energy(
             f"{lame_lambda} / 2 + {shear_modulus} / {m} = {bulk_term}"
         )
     if bulk_term < 0:
+        # 2 * bulk_term is the quoted combination; formed from the halves it cannot overflow
+        # where 2 * shear_modulus would (a modulus near the float max).
+        combination = 2 * bulk_term if abs(bulk_term) <= float(jnp.finfo(points.dtype).max) / 2 else f"{bulk_term} * 2"
         raise ValueError(
             "lame_lambda + 2 * shear_modulus / simplex_dimension must be nonnegative, got "
-            f"{lame_lambda} + 2 * {shear_modulus} / {m} = {lame_lambda + 2 * shear_modulus / m}"
+            f"{lame_lambda} + 2 * {shear_modulus} / {m} = {combination}"
         )
     check_reduction(reduction)
     backend = select_energy_backend("simplex_strain_energy", implementation, points)

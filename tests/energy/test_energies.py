@@ -507,6 +507,10 @@ def test_errors():
     with pytest.raises(ValueError, match=r"lame_lambda \+ 2 \* shear_modulus / simplex_dimension must be nonnegative"):
         jax_energy(simplex_strain_energy, current, rest, cells, lame_lambda=-0.7, shear_modulus=1.0)
     jax_energy(simplex_strain_energy, current, rest, cells, lame_lambda=-2 / 3, shear_modulus=1.0)  # boundary: allowed
+    # Moduli near the float max: -1e308 + 2 * 1e308 / 3 = -3.33e307 is negative and representable
+    # (the message's value too, where 2 * 1e308 alone would overflow).
+    with pytest.raises(ValueError, match=r"must be nonnegative, got -1e\+308 \+ 2 \* 1e\+308 / 3 = -3.33333\d*e\+307"):
+        jax_energy(simplex_strain_energy, current, rest, cells, lame_lambda=-1e308, shear_modulus=1e308)
     with pytest.raises(ValueError, match="nonnegative"):
         jax_energy(simplex_strain_energy, current, rest, cells[:, :2], lame_lambda=-2.1, shear_modulus=1.0)
     with pytest.raises(ValueError, match="shear_modulus"):
