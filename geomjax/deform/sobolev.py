@@ -196,10 +196,12 @@ def helmholtz_topology(cells: np.ndarray, num_points: int) -> HelmholtzTopology 
 
 
 def deform_with_topology(points, cells, displacement, *, length_scale, fixed_points, max_iterations, tolerance, implementation,
-                         topology: HelmholtzTopology | None = None):  # fmt: skip
+                         topology: HelmholtzTopology | None = None, field_only: bool = False):  # fmt: skip
     """:func:`sobolev_deform_points` with, for traced ``cells``, their :func:`helmholtz_topology`
     built by the caller from the same cells on the host (torch_bridge does, as its programs
-    take every tensor traced); ignored when ``cells`` are concrete (built here, cached)."""
+    take every tensor traced); ignored when ``cells`` are concrete (built here, cached).
+    ``field_only=True`` returns the smoothed field ``u`` instead of ``x + u`` (the Sobolev
+    descent's direction, without the rounding of ``(x + u) - x``)."""
     points, batched = check_coordinates("points", points)
     displacement = check_same_shape("points", points, "displacement", displacement)
     cells = _check_cells(cells, points)
@@ -226,7 +228,7 @@ def deform_with_topology(points, cells, displacement, *, length_scale, fixed_poi
     d = add_batch_axis(displacement, batched)
     free = add_batch_axis(free, batched)
     if length_scale == 0:
-        return remove_batch_axis(x + _masked(d, free), batched)
+        return remove_batch_axis(_masked(d, free) if field_only else x + _masked(d, free), batched)
 
     num_points = x.shape[1]
     concrete_cells = not isinstance(cells, jax.core.Tracer)
@@ -246,6 +248,7 @@ def deform_with_topology(points, cells, displacement, *, length_scale, fixed_poi
         max_iterations=max_iterations,
         backend=backend,
         check_indices=not concrete_cells,
+        field_only=field_only,
     )
     if backend.is_warp:
         # Designs are solved independently: explicitly split ones shard by shard (see
@@ -319,15 +322,18 @@ def _masked(field: jax.Array, free: jax.Array | None) -> jax.Array:
 # Shared pipeline.
 
 
-@functools.partial(jax.jit, static_argnames=("max_iterations", "backend", "check_indices"))
-def _deform(points, cells, displacement, free, pattern, hierarchy, length_scale_squared, tolerance, *, max_iterations, backend, check_indices):
-    """``x + u`` for ``(B, N, D)`` inputs, ``l > 0``; index and degeneracy checks under ``error_if``."""
+@functools.partial(jax.jit, static_argnames=("max_iterations", "backend", "check_indices", "field_only"))
+def _deform(
+    points, cells, displacement, free, pattern, hierarchy, length_scale_squared, tolerance, *, max_iterations, backend, check_indices, field_only=False
+):
+    """``x + u`` (``u`` with ``field_only``) for ``(B, N, D)`` inputs, ``l > 0``; index and
+    degeneracy checks under ``error_if``."""
     num_points = points.shape[1]
     if check_indices:
         cells = check_index_range(cells, num_points, _index_range_message(num_points))
     if points.size == 0 or cells.shape[0] == 0:
         # Nothing to smooth: every point is isolated and keeps its (masked) displacement.
-        return points + _masked(displacement, free)
+        return _masked(displacement, free) if field_only else points + _masked(displacement, free)
     cells = cells.astype(jnp.int32)
     if backend.is_warp:
         # The topology's arrays are operands, not closed over: the Warp path's transforms
@@ -348,7 +354,7 @@ def _deform(points, cells, displacement, free, pattern, hierarchy, length_scale_
         referenced, field = _jax_field(points, displacement, free, cells, length_scale_squared, tolerance, pattern, hierarchy, max_iterations=max_iterations)
     # Unreferenced rows decouple (m̄ u = m̄ d): make them exact whatever the solver's start.
     field = jnp.where(referenced[:, None], field, displacement)
-    return points + _masked(field, free)
+    return _masked(field, free) if field_only else points + _masked(field, free)
 
 
 def _jax_field(
