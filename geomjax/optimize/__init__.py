@@ -1,6 +1,8 @@
-"""Shape optimisation on optimistix: Sobolev gradient descent (see DESIGN.md)."""
+"""Shape optimisation on optimistix: Sobolev gradient descent and least-squares fits (see DESIGN.md)."""
 
+from ._fits import fit_free_form_deformation as fit_free_form_deformation
+from ._fits import fit_morph as fit_morph
 from ._sobolev_descent import SobolevDescent as SobolevDescent
 from ._sobolev_descent import SobolevGradientDescent as SobolevGradientDescent
 
-__all__ = ["SobolevDescent", "SobolevGradientDescent"]
+__all__ = ["SobolevDescent", "SobolevGradientDescent", "fit_free_form_deformation", "fit_morph"]

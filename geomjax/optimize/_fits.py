@@ -1,0 +1,189 @@
+"""Least-squares fits of deformation parameters to measured target positions, on optimistix.
+
+The deformations of :mod:`geomjax.deform` are linear in their parameters (lattice or control
+displacements) but not in their points or controls, and users fit them over and over: a lattice
+that carries a set of landmarks onto measured positions, control displacements that reproduce a
+scan. Each fit here is one ``optimistix.least_squares`` call (Levenberg-Marquardt by default,
+forward-mode Jacobians) on the residuals ``deform(points; params) - targets`` plus an optional
+Tikhonov term ``sqrt(regularization) * params``, so it runs under ``jit`` and ``vmap`` (a batch
+of fits) and, through ``optimistix.ImplicitAdjoint``, the fitted parameters are differentiable
+with respect to the points and targets.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from ..deform.ffd import free_form_deform_points
+from ..deform.morph import morph_points
+
+__all__ = ["fit_free_form_deformation", "fit_morph"]
+
+# Tolerances of the default solver, per dtype: the fits are linear least squares, so
+# Levenberg-Marquardt lands on the optimum within a few steps and these only confirm it.
+_DEFAULT_TOLERANCE = {jnp.dtype(jnp.float32): 1e-6, jnp.dtype(jnp.float64): 1e-10}
+
+
+def _least_squares(residuals, params0, args, solver, max_steps: int, throw: bool):
+    if solver is None:
+        tolerance = _DEFAULT_TOLERANCE.get(jnp.dtype(params0.dtype), 1e-6)
+        solver = optx.LevenbergMarquardt(rtol=tolerance, atol=tolerance)
+    solution: optx.Solution = optx.least_squares(residuals, solver, params0, args=args, max_steps=max_steps, throw=throw, adjoint=optx.ImplicitAdjoint())
+    return solution.value
+
+
+def _with_penalty(misfit: jax.Array, params: jax.Array, regularization: float) -> jax.Array:
+    if regularization == 0:
+        return misfit
+    return jnp.concatenate([misfit.reshape(-1), jnp.sqrt(jnp.asarray(regularization, params.dtype)) * params.reshape(-1)])
+
+
+def _check_regularization(regularization) -> float:
+    if isinstance(regularization, bool) or not isinstance(regularization, (int, float)) or not regularization >= 0 or regularization == float("inf"):
+        raise ValueError(f"regularization must be a finite real >= 0, got {regularization!r}")
+    return float(regularization)
+
+
+def _check_targets(points: jax.Array, target_points) -> jax.Array:
+    target_points = jnp.asarray(target_points)
+    if target_points.shape != points.shape or target_points.dtype != points.dtype:
+        raise ValueError(
+            f"target_points must have the shape and dtype of points {points.shape} {points.dtype}, got {target_points.shape} {target_points.dtype}"
+        )
+    return target_points
+
+
+def fit_free_form_deformation(
+    points: Float[Array, "num_points num_dims"],
+    target_points: Float[Array, "num_points num_dims"],
+    resolution: Sequence[int],
+    *,
+    origin: Sequence[float] | Float[Array, " num_dims"],
+    extent: Sequence[float] | Float[Array, " num_dims"],
+    basis: str = "bernstein",
+    regularization: float = 0.0,
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 64,
+    throw: bool = True,
+    implementation: str | None = None,
+) -> Float[Array, "*resolution num_dims"]:
+    """The FFD lattice that moves ``points`` onto ``target_points`` in least squares.
+
+    Minimises ``sum_i |FFD(points_i; L) - target_i|^2 + regularization |L|^2`` over the lattice
+    displacements ``L`` of :func:`geomjax.free_form_deform_points` with the given box and basis.
+    Points outside the box do not move, so they do not inform the fit.
+
+    Args:
+        points: ``(N, D)`` float32 or float64 positions.
+        target_points: ``(N, D)``, their measured positions (same dtype).
+        resolution: the lattice's nodes per axis ``(n_1, ..., n_D)``.
+        origin, extent, basis: the lattice's box and basis, as for
+            :func:`geomjax.free_form_deform_points`.
+        regularization: ``>= 0``, the weight of ``|L|^2`` (needed when the points do not
+            determine every node: fewer points than nodes, or empty cells).
+        solver: an optimistix least-squares solver (default Levenberg-Marquardt with tolerances
+            ``1e-6`` in float32, ``1e-10`` in float64).
+        max_steps, throw: as for ``optimistix.least_squares`` (``throw=True``: a fit that does
+            not converge raises).
+        implementation: the deformation's backend, as for :func:`geomjax.free_form_deform_points`.
+
+    Returns:
+        ``(n_1, ..., n_D, D)`` lattice displacements, differentiable with respect to ``points``
+        and ``target_points`` (implicit adjoint). ``jax.vmap`` over ``points`` and
+        ``target_points`` fits a batch.
+
+    Raises:
+        ValueError: ``target_points`` of another shape or dtype, a negative or non-finite
+            ``regularization``, and the errors of :func:`geomjax.free_form_deform_points`.
+        RuntimeError: with ``throw=True``, a fit that does not converge within ``max_steps``.
+
+    Example:
+        >>> import jax.numpy as jnp, numpy as np
+        >>> from geomjax import free_form_deform_points
+        >>> from geomjax.optimize import fit_free_form_deformation
+        >>> points = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (60, 2)))
+        >>> true = jnp.asarray(np.random.default_rng(1).normal(0, 0.1, (3, 3, 2)))
+        >>> moved = free_form_deform_points(points, true, origin=[0.0, 0.0], extent=[1.0, 1.0])
+        >>> lattice = fit_free_form_deformation(points, moved, (3, 3), origin=[0.0, 0.0], extent=[1.0, 1.0])
+        >>> print(bool(jnp.allclose(lattice, true, atol=1e-8)))
+        True
+    """
+    points = jnp.asarray(points)
+    target_points = _check_targets(points, target_points)
+    regularization = _check_regularization(regularization)
+    resolution = tuple(int(n) for n in resolution)
+    if points.ndim != 2 or len(resolution) != points.shape[-1]:
+        raise ValueError(f"resolution must give one node count per coordinate of points {points.shape}, got {resolution}")
+
+    def residuals(lattice, args):
+        points, targets = args
+        moved = free_form_deform_points(points, lattice, origin=origin, extent=extent, basis=basis, implementation=implementation)
+        return _with_penalty(moved - targets, lattice, regularization)
+
+    lattice0 = jnp.zeros((*resolution, points.shape[-1]), points.dtype)
+    return _least_squares(residuals, lattice0, (points, target_points), solver, max_steps, throw)
+
+
+def fit_morph(
+    points: Float[Array, "num_points num_dims"],
+    target_points: Float[Array, "num_points num_dims"],
+    control_points: Float[Array, "num_controls num_dims"],
+    *,
+    radius: float | Float[Array, ""] | Float[Array, " num_controls"],
+    kernel: str = "wendland_c2",
+    regularization: float = 0.0,
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 64,
+    throw: bool = True,
+    implementation: str | None = None,
+) -> Float[Array, "num_controls num_dims"]:
+    """The control displacements of :func:`geomjax.morph_points` that move ``points`` onto
+    ``target_points`` in least squares.
+
+    Minimises ``sum_i |morph(points_i; U) - target_i|^2 + regularization |U|^2`` over the
+    displacements ``U`` of ``control_points`` (Shepard-normalised compact kernels of the given
+    ``radius``). Points that no control reaches do not move and do not inform the fit.
+
+    Args:
+        points, target_points: ``(N, D)`` positions and their measured positions (same dtype).
+        control_points: ``(C, D)`` handles.
+        radius, kernel, implementation: as for :func:`geomjax.morph_points`.
+        regularization, solver, max_steps, throw: as for :func:`fit_free_form_deformation`.
+
+    Returns:
+        ``(C, D)`` control displacements, differentiable with respect to ``points``,
+        ``target_points``, ``control_points`` and an array ``radius`` (implicit adjoint).
+
+    Raises:
+        ValueError: ``target_points`` of another shape or dtype, a negative or non-finite
+            ``regularization``, and the errors of :func:`geomjax.morph_points`.
+        RuntimeError: with ``throw=True``, a fit that does not converge within ``max_steps``.
+
+    Example:
+        >>> import jax.numpy as jnp, numpy as np
+        >>> from geomjax import morph_points
+        >>> from geomjax.optimize import fit_morph
+        >>> rng = np.random.default_rng(0)
+        >>> points, controls = jnp.asarray(rng.uniform(0, 1, (80, 3))), jnp.asarray(rng.uniform(0, 1, (6, 3)))
+        >>> true = jnp.asarray(rng.normal(0, 0.05, (6, 3)))
+        >>> moved = morph_points(points, controls, true, radius=0.8)
+        >>> print(bool(jnp.allclose(fit_morph(points, moved, controls, radius=0.8), true, atol=1e-8)))
+        True
+    """
+    points = jnp.asarray(points)
+    target_points = _check_targets(points, target_points)
+    regularization = _check_regularization(regularization)
+    control_points = jnp.asarray(control_points)
+
+    def residuals(displacements, args):
+        points, targets, controls, radius = args
+        moved = morph_points(points, controls, displacements, radius=radius, kernel=kernel, implementation=implementation)
+        return _with_penalty(moved - targets, displacements, regularization)
+
+    displacements0 = jnp.zeros(control_points.shape, points.dtype)
+    return _least_squares(residuals, displacements0, (points, target_points, control_points, radius), solver, max_steps, throw)
