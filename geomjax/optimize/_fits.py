@@ -3,8 +3,8 @@
 The deformations of :mod:`geomjax.deform` are linear in their parameters (lattice or control
 displacements) but not in their points or controls, and users fit them over and over: a lattice
 that carries a set of landmarks onto measured positions, control displacements that reproduce a
-scan. Each fit here is one ``optimistix.least_squares`` call (Levenberg-Marquardt by default,
-forward-mode Jacobians) on the residuals ``deform(points; params) - targets`` plus an optional
+scan. Each fit here is one ``optimistix.least_squares`` call (Gauss-Newton by default, exact for
+these linear problems in one step, with forward-mode Jacobians) on the residuals ``deform(points; params) - targets`` plus an optional
 Tikhonov term ``sqrt(regularization) * params``, so it runs under ``jit`` and ``vmap`` (a batch
 of fits) and, through ``optimistix.ImplicitAdjoint``, the fitted parameters are differentiable
 with respect to the points and targets.
@@ -24,15 +24,15 @@ from ..deform.morph import morph_points
 
 __all__ = ["fit_free_form_deformation", "fit_morph"]
 
-# Tolerances of the default solver, per dtype: the fits are linear least squares, so
-# Levenberg-Marquardt lands on the optimum within a few steps and these only confirm it.
+# Tolerances of the default solver, per dtype: the fits are linear least squares in their
+# parameters, so Gauss-Newton lands on the optimum in one step and these only confirm it.
 _DEFAULT_TOLERANCE = {jnp.dtype(jnp.float32): 1e-6, jnp.dtype(jnp.float64): 1e-10}
 
 
 def _least_squares(residuals, params0, args, solver, max_steps: int, throw: bool):
     if solver is None:
         tolerance = _DEFAULT_TOLERANCE.get(jnp.dtype(params0.dtype), 1e-6)
-        solver = optx.LevenbergMarquardt(rtol=tolerance, atol=tolerance)
+        solver = optx.GaussNewton(rtol=tolerance, atol=tolerance)
     solution: optx.Solution = optx.least_squares(residuals, solver, params0, args=args, max_steps=max_steps, throw=throw, adjoint=optx.ImplicitAdjoint())
     return solution.value
 
@@ -84,10 +84,15 @@ def fit_free_form_deformation(
         resolution: the lattice's nodes per axis ``(n_1, ..., n_D)``.
         origin, extent, basis: the lattice's box and basis, as for
             :func:`geomjax.free_form_deform_points`.
-        regularization: ``>= 0``, the weight of ``|L|^2`` (needed when the points do not
-            determine every node: fewer points than nodes, or empty cells).
-        solver: an optimistix least-squares solver (default Levenberg-Marquardt with tolerances
-            ``1e-6`` in float32, ``1e-10`` in float64).
+        regularization: ``>= 0``, the weight of ``|L|^2``. Needed when the points do not
+            determine every node (fewer points than nodes, nodes far from every point, as the
+            corners of a box around a curved mesh): without it the solver's steps there are
+            rounding amplified by the near-singular system, the fit does not settle, and
+            ``throw=True`` raises. ``1e-9`` keeps such nodes at zero and moves the others by
+            about ``1e-9`` relative.
+        solver: an optimistix least-squares solver (default ``optimistix.GaussNewton`` with
+            tolerances ``1e-6`` in float32, ``1e-10`` in float64; its QR solve needs the points
+            to determine every node, or a ``regularization``).
         max_steps, throw: as for ``optimistix.least_squares`` (``throw=True``: a fit that does
             not converge raises).
         implementation: the deformation's backend, as for :func:`geomjax.free_form_deform_points`.
