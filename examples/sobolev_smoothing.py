@@ -4,10 +4,12 @@ What it shows: the loss is the mean squared distance from a few hundred sample p
 (the peanut of ``_shape_problem.py``) to the current surface, ``geomjax.signed_distance_field``
 with the *mesh vertices* as the differentiated argument. Its raw gradient with respect to the
 vertices is spiky: each sample pulls only the three corners of its closest triangle. Descent on
-all vertices with that gradient grows tents and crumples the surface. Filtering the same
-gradient with ``geomjax.sobolev_deform_points`` (the Helmholtz / H^1 smoother
-``(M + l^2 K) u = M d`` on the current surface) spreads each pull over a length ``l`` and the
-surface stays smooth while it converges.
+all vertices with that gradient (``optimistix.GradientDescent``) grows tents and crumples the
+surface. ``geomjax.optimize.SobolevGradientDescent`` filters the same gradient with the
+Helmholtz / H^1 smoother of ``geomjax.sobolev_deform_points`` (``(M + l^2 K) u = M d`` on the
+current surface), which spreads each pull over a length ``l``: the surface stays smooth while it
+converges. Both are optimistix minimisers with fixed steps (``optimistix.LearningRate``), stepped
+one iteration at a time to record the history.
 
 Outputs (PNG, in ``examples/output/`` or ``--output-dir``): ``sobolev_smoothing.png``: the first
 raw gradient and the first Sobolev-smoothed step on the sphere (colour: the descent direction's
@@ -27,14 +29,17 @@ import argparse
 import time
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 from _render import figure_of_surfaces, loss_curves
 from _shape_problem import peanut, vertex_normals
 from tqdm import tqdm
 
 import geomjax
+from geomjax.optimize import SobolevGradientDescent
 
 SIZES = {
     "smoke": {"subdivisions": 2, "samples": 60, "steps": 10},
@@ -65,43 +70,42 @@ def main() -> None:
     print(f"sphere: {sphere.n_points} vertices; {samples.shape[0]} target samples; {steps} steps, "
           f"step size {args.step_size} (raw) / {args.sobolev_step_size} (Sobolev), Sobolev length {args.length_scale}")
 
-    def loss(points):
+    def loss(points, args):
         distance, _, _ = geomjax.signed_distance_field(points, triangles, samples)
-        return jnp.sum(distance**2)
+        return jnp.sum(distance**2), None  # (value, aux), as optimistix's solvers take it
 
     def roughness(points):
         return geomjax.surface_bending_energy(points, sphere.points, hinges)
 
-    @jax.jit
-    def raw_step(points):
-        value, grad = jax.value_and_grad(loss)(points)
-        return points - args.step_size * grad, value, roughness(points), -args.step_size * grad
-
-    @jax.jit
-    def sobolev_step(points):
-        value, grad = jax.value_and_grad(loss)(points)
+    solvers = {
+        "raw gradient": optx.GradientDescent(learning_rate=args.step_size, rtol=0.0, atol=0.0),
         # The filter is assembled on the current surface: the step is smooth on the shape it moves.
-        moved = geomjax.sobolev_deform_points(points, triangles, -args.sobolev_step_size * grad, length_scale=args.length_scale,
-                                              max_iterations=1000, tolerance=1e-5)
-        return moved, value, roughness(points), moved - points
-
-    flows = {"raw gradient": (raw_step, sphere.points), "Sobolev gradient": (sobolev_step, sphere.points)}
+        "Sobolev gradient": SobolevGradientDescent(triangles, length_scale=args.length_scale, rtol=0.0, atol=0.0,
+                                                   search=optx.LearningRate(args.sobolev_step_size)),
+    }
     history: dict[str, dict[str, list[float]]] = {}
     first_steps, final_points = {}, {}
     start = time.perf_counter()
-    for name, (step, points) in flows.items():
+    for name, solver in solvers.items():
+        points = sphere.points
+        f_struct = jax.ShapeDtypeStruct((), points.dtype)
+        state = solver.init(loss, points, None, {}, f_struct, None, frozenset())
+        # optimistix's step evaluates the loss at the point it moves to (y_eval), accepting it on
+        # the next call: y_eval is the descent's iterate.
+        step = eqx.filter_jit(lambda y, state, solver=solver: solver.step(loss, y, None, {}, state, frozenset())[:2])
         for iteration in tqdm(range(steps + 1), desc=name, unit="step"):
-            moved, value, rough, update = step(points)
-            history.setdefault("loss", {}).setdefault(name, []).append(float(value))
-            history.setdefault("bending energy (roughness)", {}).setdefault(name, []).append(float(rough))
-            if iteration == 0:
-                first_steps[name] = np.asarray(update)
+            value = float(loss(points, None)[0])
+            history.setdefault("loss", {}).setdefault(name, []).append(value)
+            history.setdefault("bending energy (roughness)", {}).setdefault(name, []).append(float(roughness(points)))
             if iteration == steps:  # the last pass only measures the final surface
                 break
-            points = moved
+            _, state = step(points, state)
+            if iteration == 0:
+                first_steps[name] = np.asarray(state.y_eval - points)
+            points = state.y_eval
         final_points[name] = np.asarray(points)
     print(f"descent: {time.perf_counter() - start:.1f} s (first steps include compilation)")
-    for name in flows:
+    for name in solvers:
         print(f"{name:>17}: loss {history['loss'][name][0]:.4e} -> {history['loss'][name][-1]:.4e}, "
               f"bending energy {history['bending energy (roughness)'][name][-1]:.4g}, "
               f"inverted triangles {count_inverted(final_points[name], np.asarray(triangles))}")

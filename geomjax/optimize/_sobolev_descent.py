@@ -169,6 +169,8 @@ class SobolevGradientDescent(optx.AbstractGradientDescent):
         rtol, atol: optimistix's relative and absolute tolerances.
         step_size: the first step tried at every iteration, a multiple of the Sobolev gradient
             (in the objective's units: ``step_size * |r|`` should be a sensible first move).
+        search: another optimistix line search instead (e.g. ``optimistix.LearningRate(0.5)``
+            for fixed steps); ``step_size`` is then unused.
         norm: optimistix's norm for the stopping rule (default ``optimistix.max_norm``).
         num_points, fixed_points, tolerance, max_iterations, implementation: as for
             :class:`SobolevDescent`.
@@ -191,7 +193,7 @@ class SobolevGradientDescent(optx.AbstractGradientDescent):
     atol: float
     norm: Callable[[PyTree], Any]
     descent: SobolevDescent
-    search: optx.BacktrackingArmijo
+    search: optx.AbstractSearch
 
     def __init__(
         self,
@@ -201,6 +203,7 @@ class SobolevGradientDescent(optx.AbstractGradientDescent):
         rtol: float,
         atol: float,
         step_size: float = 1.0,
+        search: optx.AbstractSearch | None = None,
         norm: Callable[[PyTree], Any] = optx.max_norm,
         num_points: int | None = None,
         fixed_points=None,
@@ -215,4 +218,4 @@ class SobolevGradientDescent(optx.AbstractGradientDescent):
             cells, length_scale=length_scale, num_points=num_points, fixed_points=fixed_points, tolerance=tolerance,
             max_iterations=max_iterations, implementation=implementation,
         )  # fmt: skip
-        self.search = optx.BacktrackingArmijo(step_init=step_size)
+        self.search = optx.BacktrackingArmijo(step_init=step_size) if search is None else search
