@@ -151,7 +151,8 @@ def test_empty_inputs():
         assert ffd(jnp.zeros((0, 4, 3)), jnp.zeros((0,) + lattice.shape), basis, "warp").shape == (0, 4, 3)
 
 
-def test_default_backend_rule_on_cpu(monkeypatch):
+def _spy_on_the_warp_field(monkeypatch) -> list:
+    """The bases of the calls that reach the Warp field from now on."""
     calls = []
     original = warp_ffd.free_form_deform_field
 
@@ -160,6 +161,11 @@ def test_default_backend_rule_on_cpu(monkeypatch):
         return original(*args, **kwargs)
 
     monkeypatch.setattr(warp_ffd, "free_form_deform_field", spy)
+    return calls
+
+
+def test_default_backend_rule_on_cpu(monkeypatch):
+    calls = _spy_on_the_warp_field(monkeypatch)
     points = rng_array(34, (6, 3), 0, 1)
     free_form_deform_points(points, jnp.zeros((4, 4, 4, 3)), origin=[0.0] * 3, extent=[1.0] * 3, basis="bspline")
     free_form_deform_points(points, jnp.zeros((3, 3, 3, 3)), origin=[0.0] * 3, extent=[1.0] * 3, basis="bernstein")
@@ -214,14 +220,7 @@ def test_default_runs_jax_beyond_the_fixed_kernels(monkeypatch):
 
     # geomjax decides without importing Warp: its copy of the fixed kernels' limits must match.
     assert (ffd_module.WARP_MAX_DIMS, ffd_module.WARP_MAX_BERNSTEIN_NODES) == (warp_ffd.MAX_FIXED_DIMS, warp_ffd.MAX_AXIS_NODES)
-    calls = []
-    original = warp_ffd.free_form_deform_field
-
-    def spy(*args, **kwargs):
-        calls.append(kwargs["basis"])
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(warp_ffd, "free_form_deform_field", spy)
+    calls = _spy_on_the_warp_field(monkeypatch)
     points4 = rng_array(34, (5, 4), 0, 1)
     lattice4 = rng_array(35, (2, 2, 2, 2, 4), -0.1, 0.1)
     default = free_form_deform_points(points4, lattice4, origin=[0.0] * 4, extent=[1.0] * 4, basis="linear")
