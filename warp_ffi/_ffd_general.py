@@ -16,9 +16,9 @@ from typing import Any, no_type_check
 import jax
 import jax.numpy as jnp
 
+from ._ffd_basis import BASIS_CODES, Batched, PerDesign, axis_basis, kernel_types
 from ._wrap import KernelFamily
 from ._wrap import warp as wp
-from .ffd import BASIS_CODES, Batched, PerDesign, _axis_basis, _types
 
 __all__ = ["general_field", "general_field_adjoint"]
 
@@ -50,7 +50,7 @@ def _general_tables(
             n = nodes[d]
             base = d * width
             if kind == 0:
-                # The fixed kernels' de Casteljau recurrence (see _axis_basis), in the scratch rows.
+                # The fixed kernels' de Casteljau recurrence (see axis_basis), in the scratch rows.
                 lower = one - u
                 weights[b, q, base] = one
                 for k in range(1, n):
@@ -68,7 +68,7 @@ def _general_tables(
                 starts[b, q, d] = 0
                 counts[b, q, d] = n
             else:
-                w, dw, s, c = _axis_basis(kind, n, u, table)  # a local basis: its support fits the table
+                w, dw, s, c = axis_basis(kind, n, u, table)  # a local basis: its support fits the table
                 for i in range(c):
                     weights[b, q, base + i] = w[i]
                     slopes[b, q, base + i] = dw[i]
@@ -180,9 +180,9 @@ def _ffd_general_point_adjoint_kernel(
 
 
 _SCRATCH = ("weights", "slopes", "starts", "counts")
-_general_map = KernelFamily(_ffd_general_kernel, _types, outputs=("out", *_SCRATCH))
-_general_map_transpose = KernelFamily(_ffd_general_kernel, _types, outputs=("out", *_SCRATCH), accumulate=("out",))
-_general_point_adjoint = KernelFamily(_ffd_general_point_adjoint_kernel, _types, outputs=("points_adj", *_SCRATCH))
+_general_map = KernelFamily(_ffd_general_kernel, kernel_types, outputs=("out", *_SCRATCH))
+_general_map_transpose = KernelFamily(_ffd_general_kernel, kernel_types, outputs=("out", *_SCRATCH), accumulate=("out",))
+_general_point_adjoint = KernelFamily(_ffd_general_point_adjoint_kernel, kernel_types, outputs=("points_adj", *_SCRATCH))
 
 
 def _general_static(lattice_shape: tuple[int, ...], basis: str) -> tuple:
