@@ -68,6 +68,7 @@ def timed(label: str, fn):
 
 
 def main() -> None:
+    geomjax.enable_compilation_cache()  # later runs load the compiled programs instead of compiling them
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--subdivisions", type=int, default=4, help="icosphere refinement (4: 2,562 vertices)")
     parser.add_argument("--output", type=Path, default=Path(__file__).parent / "output" / "deform_demo.png")

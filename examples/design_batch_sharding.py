@@ -68,6 +68,7 @@ def best_time(fn, repeats: int = 3) -> float:
 
 
 def main() -> None:
+    geomjax.enable_compilation_cache()  # later runs load the compiled programs instead of compiling them
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--full", action="store_true", help="full size: subdivision-5 sphere, 8x6x6 lattices")

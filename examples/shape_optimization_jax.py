@@ -65,6 +65,7 @@ def adam(learning_rate: float, beta1: float = 0.9, beta2: float = 0.999, eps: fl
 
 
 def main() -> None:
+    geomjax.enable_compilation_cache()  # later runs load the compiled programs instead of compiling them
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--full", action="store_true", help="full size: subdivision-5 sphere, 8x6x6 lattice, 2000 steps")

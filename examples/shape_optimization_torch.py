@@ -42,6 +42,7 @@ from _shape_problem import (
 )
 from tqdm import tqdm
 
+import geomjax
 import torch_bridge
 
 # Each bridged op is a separate JAX call (forward, then its VJP in backward), where the JAX example
@@ -51,6 +52,7 @@ DEFAULT_ITERATIONS = 300
 
 
 def main() -> None:
+    geomjax.enable_compilation_cache()  # later runs load the compiled programs instead of compiling them
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--full", action="store_true", help="full size: subdivision-5 sphere, 8x6x6 lattice, 2000 steps")

@@ -49,6 +49,7 @@ SIZES = {
 
 
 def main() -> None:
+    geomjax.enable_compilation_cache()  # later runs load the compiled programs instead of compiling them
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--full", action="store_true", help="full size: subdivision-4 sphere, 1500 samples, 300 steps")

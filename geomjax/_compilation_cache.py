@@ -27,9 +27,11 @@ __all__ = ["default_compilation_cache_dir", "enable_compilation_cache"]
 
 
 def default_compilation_cache_dir() -> Path:
-    """``$GEOMJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/geomjax/jax`` (``~/.cache/geomjax/jax``)."""
-    if os.environ.get("GEOMJAX_CACHE_DIR"):
-        return Path(os.environ["GEOMJAX_CACHE_DIR"])
+    """``$GEOMJAX_CACHE_DIR``, else JAX's own ``$JAX_COMPILATION_CACHE_DIR`` (a folder the user
+    already chose for JAX), else ``$XDG_CACHE_HOME/geomjax/jax`` (``~/.cache/geomjax/jax``)."""
+    for variable in ("GEOMJAX_CACHE_DIR", "JAX_COMPILATION_CACHE_DIR"):
+        if os.environ.get(variable):
+            return Path(os.environ[variable])
     base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     return base / "geomjax" / "jax"
 
