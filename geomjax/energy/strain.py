@@ -119,8 +119,7 @@ def simplex_strain_energy(
         # where 2 * shear_modulus would (a modulus near the float max).
         combination = 2 * bulk_term if abs(bulk_term) <= float(jnp.finfo(points.dtype).max) / 2 else f"{bulk_term} * 2"
         raise ValueError(
-            "lame_lambda + 2 * shear_modulus / simplex_dimension must be nonnegative, got "
-            f"{lame_lambda} + 2 * {shear_modulus} / {m} = {combination}"
+            f"lame_lambda + 2 * shear_modulus / simplex_dimension must be nonnegative, got {lame_lambda} + 2 * {shear_modulus} / {m} = {combination}"
         )
     check_reduction(reduction)
     backend = select_energy_backend("simplex_strain_energy", implementation, points)
