@@ -1,0 +1,98 @@
+"""One process of a multi-process run (``tests/test_multiprocess.py`` starts them).
+
+Usage: ``python -m tests.multiprocess_worker CASE PROCESS_ID NUM_PROCESSES PORT DEVICES_PER_PROCESS``.
+The process joins ``jax.distributed`` with its coordinator on 127.0.0.1 (Gloo collectives on
+CPU), builds its part of each global array with ``jax.make_array_from_process_local_data`` (the
+rows that the sharding's ``addressable_devices_indices_map`` gives it), runs the case jitted on
+the global arrays and, on its own devices alone, the same computation unsharded as the
+reference, and prints one JSON line: the case, its rows and the largest relative difference.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+
+def _local_rows(sharding, shape) -> tuple[int, int]:
+    """The contiguous rows ``[lo, hi)`` of a row-split array that this process holds."""
+    bounds = [(index[0].start or 0, shape[0] if index[0].stop is None else index[0].stop) for index in sharding.addressable_devices_indices_map(shape).values()]
+    return min(b[0] for b in bounds), max(b[1] for b in bounds)
+
+
+def _relative_difference(actual, expected) -> float:
+    import numpy as np
+
+    actual, expected = np.asarray(actual, np.float64), np.asarray(expected, np.float64)
+    return float(np.max(np.abs(actual - expected)) / max(float(np.max(np.abs(expected))), np.finfo(np.float64).tiny))
+
+
+def _local_part(array, lo: int, hi: int):
+    """This process's rows of a row-split global array, gathered from its addressable shards."""
+    import numpy as np
+
+    shards = sorted(array.addressable_shards, key=lambda s: s.index[0].start or 0)
+    rows = np.concatenate([np.asarray(s.data) for s in shards])
+    return rows[: hi - lo]
+
+
+def main() -> None:
+    case, process_id, num_processes, port, devices = sys.argv[1], *map(int, sys.argv[2:6])
+    os.environ["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator_address=f"127.0.0.1:{port}", num_processes=num_processes, process_id=process_id, initialization_timeout=60)
+    import jax.numpy as jnp
+    import numpy as np
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    import geomjax as gj
+
+    mesh = jax.make_mesh((jax.device_count(),), ("rows",))
+    split = NamedSharding(mesh, P("rows"))
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-1.2, 1.2, (16 * jax.device_count(), 3))  # the same in every process
+    lo, hi = _local_rows(split, points.shape)
+    global_points = jax.make_array_from_process_local_data(split, points[lo:hi], points.shape)
+    local_device = jax.local_devices()[0]
+    unsharded_points = jax.device_put(points, local_device)
+    result = {"case": case, "process": process_id, "rows": [lo, hi], "devices": jax.device_count()}
+
+    if case.startswith("sdf"):
+        implementation = case.split("-")[1]
+        sphere = gj.icosphere(2)
+
+        def distances(q):
+            return gj.signed_distance_field(sphere.points, sphere.cells, q, implementation=implementation)[0]
+
+        split_value = _local_part(jax.jit(distances)(global_points), lo, hi)
+        reference = np.asarray(distances(unsharded_points))[lo:hi]
+        result["max_relative_difference"] = _relative_difference(split_value, reference)
+    elif case.startswith("ffd"):
+        implementation = case.split("-")[1]
+        lattice = rng.normal(0, 0.1, (3, 3, 3, 3))
+        # Replicated: every process gives the whole lattice (a device_put of a local array onto
+        # the global mesh would be a cross-host transfer).
+        global_lattice = jax.make_array_from_process_local_data(NamedSharding(mesh, P()), lattice, lattice.shape)
+        box = {"origin": [-1.3] * 3, "extent": [2.6] * 3, "basis": "bernstein", "implementation": implementation}
+
+        def loss(lat, q):  # value and the gradient of the replicated lattice: a cross-process sum
+            return jnp.sum(jnp.sin(gj.free_form_deform_points(q, lat, **box)))
+
+        value, gradient = jax.jit(jax.value_and_grad(loss))(global_lattice, global_points)
+        ref_value, ref_gradient = jax.value_and_grad(loss)(jax.device_put(lattice, local_device), unsharded_points)
+        # Replicated results: every process holds the whole value and gradient.
+        value, gradient = value.addressable_shards[0].data, gradient.addressable_shards[0].data
+        result["max_relative_difference"] = max(_relative_difference(value, ref_value), _relative_difference(np.asarray(gradient), ref_gradient))
+    else:
+        raise SystemExit(f"unknown case {case!r}")
+    print(json.dumps(result), flush=True)
+    jax.distributed.shutdown()
+
+
+if __name__ == "__main__":
+    main()
