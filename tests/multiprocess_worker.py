@@ -72,19 +72,29 @@ def main() -> None:
         split_value = _local_part(jax.jit(distances)(global_points), lo, hi)
         reference = np.asarray(distances(unsharded_points))[lo:hi]
         result["max_relative_difference"] = _relative_difference(split_value, reference)
-    elif case.startswith("ffd"):
+    elif case.startswith(("ffd", "rbf")):
         implementation = case.split("-")[1]
-        lattice = rng.normal(0, 0.1, (3, 3, 3, 3))
-        # Replicated: every process gives the whole lattice (a device_put of a local array onto
-        # the global mesh would be a cross-host transfer).
-        global_lattice = jax.make_array_from_process_local_data(NamedSharding(mesh, P()), lattice, lattice.shape)
-        box = {"origin": [-1.3] * 3, "extent": [2.6] * 3, "basis": "bernstein", "implementation": implementation}
+        if case.startswith("ffd"):
+            parameters = rng.normal(0, 0.1, (3, 3, 3, 3))  # the lattice
+            box = {"origin": [-1.3] * 3, "extent": [2.6] * 3, "basis": "bernstein", "implementation": implementation}
 
-        def loss(lat, q):  # value and the gradient of the replicated lattice: a cross-process sum
-            return jnp.sum(jnp.sin(gj.free_form_deform_points(q, lat, **box)))
+            def deform(params, q):
+                return gj.free_form_deform_points(q, params, **box)
+        else:
+            controls = rng.uniform(-1, 1, (12, 3))  # NumPy: a constant of every process's program
+            parameters = rng.normal(0, 0.1, (12, 3))  # the control displacements
 
-        value, gradient = jax.jit(jax.value_and_grad(loss))(global_lattice, global_points)
-        ref_value, ref_gradient = jax.value_and_grad(loss)(jax.device_put(lattice, local_device), unsharded_points)
+            def deform(params, q):
+                return gj.radial_basis_function_deform_points(q, jnp.asarray(controls), params, implementation=implementation)
+
+        def loss(params, q):  # the value and the gradient of replicated parameters: cross-process sums
+            return jnp.sum(jnp.sin(deform(params, q)))
+
+        # Replicated: every process gives the whole array (a device_put of a local array onto the
+        # global mesh would be a cross-host transfer).
+        global_parameters = jax.make_array_from_process_local_data(NamedSharding(mesh, P()), parameters, parameters.shape)
+        value, gradient = jax.jit(jax.value_and_grad(loss))(global_parameters, global_points)
+        ref_value, ref_gradient = jax.value_and_grad(loss)(jax.device_put(parameters, local_device), unsharded_points)
         # Replicated results: every process holds the whole value and gradient.
         value, gradient = value.addressable_shards[0].data, gradient.addressable_shards[0].data
         result["max_relative_difference"] = max(_relative_difference(value, ref_value), _relative_difference(np.asarray(gradient), ref_gradient))

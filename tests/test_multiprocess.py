@@ -4,7 +4,9 @@ Each case starts ``num_processes`` Python processes of ``tests/multiprocess_work
 ``devices`` host devices each, coordinated by ``jax.distributed`` on 127.0.0.1 only (a free
 port; Gloo collectives on CPU). Every process builds its rows of the global inputs with
 ``jax.make_array_from_process_local_data``, runs the op jitted on the global arrays and compares
-its rows with the same computation unsharded (issue 17). Processes are bounded in time and always
+its rows with the same computation unsharded (issue 17): SDF on split query points, and FFD and
+RBF on split points with the gradient of their replicated lattice or control displacements (a
+cross-process sum), each on both backends. Processes are bounded in time and always
 cleaned up.
 """
 
@@ -57,7 +59,7 @@ def run_processes(case: str, num_processes: int, devices: int) -> list[dict]:
     return results
 
 
-CASES = [("sdf-jax", 2, 2), ("sdf-warp", 2, 2), ("ffd-jax", 2, 2), ("ffd-warp", 2, 2), ("sdf-jax", 4, 1)]
+CASES = [("sdf-jax", 2, 2), ("sdf-warp", 2, 2), ("ffd-jax", 2, 2), ("ffd-warp", 2, 2), ("rbf-jax", 2, 2), ("rbf-warp", 2, 2), ("sdf-jax", 4, 1)]
 
 
 @pytest.mark.multiprocess
