@@ -98,6 +98,33 @@ def main() -> None:
         # Replicated results: every process holds the whole value and gradient.
         value, gradient = value.addressable_shards[0].data, gradient.addressable_shards[0].data
         result["max_relative_difference"] = max(_relative_difference(value, ref_value), _relative_difference(np.asarray(gradient), ref_gradient))
+    elif case == "energies-warp":
+        # A split batch of designs: each process holds some designs (and their reference
+        # shapes); the six energies per design and cell, on the Warp backend.
+        box, sphere = gj.tetrahedralized_box(2, 2, 2), gj.icosphere(1)
+        num_designs = 2 * jax.device_count()
+        lo, hi = _local_rows(split, (num_designs,))
+        differences = []
+        for rest, topology, energies in (
+            (box.points, box.cells, (gj.simplex_strain_energy, gj.simplex_measure_energy, gj.total_measure_energy, gj.simplex_inversion_energy)),
+            (sphere.points, sphere.hinges, (gj.surface_bending_energy,)),
+            (sphere.points, sphere.cells, (gj.closed_surface_volume_energy,)),
+        ):
+            rest = np.asarray(rest)
+            designs = rest + rng.normal(0, 0.03, (num_designs, *rest.shape))
+            references = np.broadcast_to(rest, designs.shape).copy()
+            global_designs = jax.make_array_from_process_local_data(split, designs[lo:hi], designs.shape)
+            global_references = jax.make_array_from_process_local_data(split, references[lo:hi], references.shape)
+            for energy in energies:
+
+                def per_cell(x, r, energy=energy, topology=topology):
+                    return energy(x, r, topology, reduction="none", implementation="warp")
+
+                split_value = _local_part(jax.jit(per_cell)(global_designs, global_references), lo, hi)
+                reference = np.asarray(per_cell(jax.device_put(designs, local_device), jax.device_put(references, local_device)))[lo:hi]
+                differences.append(_relative_difference(split_value, reference))
+        result["rows"] = [lo, hi]
+        result["max_relative_difference"] = max(differences)
     else:
         raise SystemExit(f"unknown case {case!r}")
     print(json.dumps(result), flush=True)

@@ -6,8 +6,8 @@ port; Gloo collectives on CPU). Every process builds its rows of the global inpu
 ``jax.make_array_from_process_local_data``, runs the op jitted on the global arrays and compares
 its rows with the same computation unsharded (issue 17): SDF on split query points, and FFD and
 RBF on split points with the gradient of their replicated lattice or control displacements (a
-cross-process sum), each on both backends. Processes are bounded in time and always
-cleaned up.
+cross-process sum), each on both backends; the six energies per design and cell on the Warp
+backend over a split batch of designs. Processes are bounded in time and always cleaned up.
 """
 
 from __future__ import annotations
@@ -59,7 +59,16 @@ def run_processes(case: str, num_processes: int, devices: int) -> list[dict]:
     return results
 
 
-CASES = [("sdf-jax", 2, 2), ("sdf-warp", 2, 2), ("ffd-jax", 2, 2), ("ffd-warp", 2, 2), ("rbf-jax", 2, 2), ("rbf-warp", 2, 2), ("sdf-jax", 4, 1)]
+CASES = [
+    ("sdf-jax", 2, 2),
+    ("sdf-warp", 2, 2),
+    ("ffd-jax", 2, 2),
+    ("ffd-warp", 2, 2),
+    ("rbf-jax", 2, 2),
+    ("rbf-warp", 2, 2),
+    ("energies-warp", 2, 2),
+    ("sdf-jax", 4, 1),
+]  # fmt: skip
 
 
 @pytest.mark.multiprocess
