@@ -413,10 +413,10 @@ def _point_search(dtype, sign_mode: int, exact: bool, measure: bool, build: bool
         else:
             batch = CPU_SEARCH_BATCH if points32.device.is_cpu else 1
             inputs = [tree, points32, params32, skip_slivers, batch, order]
-            launch_in_chunks(_nearest_kernel, 1, -(-num // batch), inputs, [faces_out, sign_out], min_chunk=256)
+            launch_in_chunks(_nearest_kernel, 1, -(-num // batch), inputs, [faces_out, sign_out], min_chunk=8)
         if exact:
             inputs = [tree, points32, points, vertices, faces, params, skip_slivers, order]
-            launch_in_chunks(_refine(dtype), 1, num, inputs, [faces_out])
+            launch_in_chunks(_refine(dtype), 1, num, inputs, [faces_out], min_chunk=256)
         if sign_mode == SIGN_MODES["normal"]:
             inputs = [tree, points, vertices, faces, params, faces_out, order]
             launch_in_chunks(_normal_sign(dtype), 1, num, inputs, [sign_out])

@@ -14,6 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._triangulation import row_cross, row_dot
+
 __all__ = ["ClusterQuadrics"]
 
 # A direction counts as constrained when its eigenvalue is at least this fraction of the largest.
@@ -41,11 +43,11 @@ class ClusterQuadrics(NamedTuple):
     @classmethod
     def of(cls, x: np.ndarray, faces: np.ndarray, face_area: np.ndarray, labels: np.ndarray, num: int) -> ClusterQuadrics:
         a, b, c = (x[faces[:, k]].astype(np.float64) for k in range(3))
-        normal = np.cross(b - a, c - a)
+        normal = row_cross(b - a, c - a)
         normal /= np.where(face_area > 0, 2 * face_area, 1.0)[:, None]
         corner_labels = labels[faces].reshape(-1)
         third = np.repeat(face_area / 3, 3)
-        normal3, offset3 = np.repeat(normal, 3, axis=0), np.repeat(np.sum(normal * a, axis=1), 3)
+        normal3, offset3 = np.repeat(normal, 3, axis=0), np.repeat(row_dot(normal, a), 3)
         quadric = np.zeros((num, 3, 3))
         for row, column in zip(_ROWS, _COLUMNS):
             entry = np.bincount(corner_labels, weights=third * normal3[:, row] * normal3[:, column], minlength=num)

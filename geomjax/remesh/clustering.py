@@ -33,6 +33,8 @@ from ._triangulation import (
     overturned_vertices,
     relaxation_targets,
     remove_degree_three,
+    row_cross,
+    row_dot,
     topology,
 )
 
@@ -431,7 +433,8 @@ def _checked_density(vertex_density, vertices: jax.Array) -> np.ndarray | None:
 
 def _triangle_areas(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
     a, b, c = (x[faces[:, k]] for k in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    double = row_cross(b - a, c - a)
+    return 0.5 * np.sqrt(row_dot(double, double))
 
 
 def _stratified_seeds(x: np.ndarray, mass: np.ndarray, count: int, width: float, rng: np.random.Generator) -> np.ndarray:
@@ -462,8 +465,8 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device):
     from warp_ffi.remesh import nearest_centroids
 
     warp_device = str(warp.device_from_jax(device))
-    # Cells twice the search radius: a query visits 1 to 8 cells instead of 27.
-    cell = 2 * radius
+    # Cells twice the first search radius (radius / 2): that search visits 1 to 8 cells.
+    cell = radius
     low, high = x.min(axis=0) - radius, x.max(axis=0) + radius
     dims = table_dims(low, high, cell, (resolution,) * 3)
     for _ in range(iterations):
