@@ -15,6 +15,7 @@ from .._dispatch import Implementation, platform_of, select_implementation
 from .._errors import raises_documented_errors
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
 from .._sharding import map_local_shards
+from .._tiny_scale import homogeneous_at_normal_scale, tiny_problem_exponent
 from .._validate import (
     as_float_array,
     check_choice,
@@ -58,7 +59,11 @@ def morph_points(
     of all coincident controls, overriding the others. The quotient is evaluated in a scaled
     form relative to the nearest active control (``u = d_ref + correction``), with a hypot-like
     norm and non-finite differences treated as outside the support, so values and gradients
-    stay finite arbitrarily close to a control (e.g. at ``1e-30 * r`` in float64).
+    stay finite arbitrarily close to a control (e.g. at ``1e-30 * r`` in float64). A design
+    whose lengths (points, controls, displacements, radii) are all tiny, down to subnormal
+    radii such as ``1e-310``, is evaluated at a normal scale by exact powers of two (the morph is
+    homogeneous in its lengths), so it keeps its values and gradients although XLA flushes
+    subnormal numbers to zero.
 
     Args:
         points: ``(N, D)`` or aligned batched ``(B, N, D)``, float32 or float64, ``D >= 1``.
@@ -140,10 +145,16 @@ def _morph_points(points, control_points, control_displacements, radii, point_we
 def _morph(x, controls, displacements, radius, weights, *, backend: Implementation) -> jax.Array:
     """Morphed ``(B, N, D)`` points from normalised inputs (independent per design and point)."""
     if controls.shape[-2] == 0 or x.shape[-2] == 0:
-        field = jnp.zeros_like(x)
-    else:
+        return apply_point_weights(x, jnp.zeros_like(x), weights)
+    # The morph is homogeneous in its lengths: a design whose lengths are all tiny (a subnormal
+    # radius) runs at a normal scale, since XLA flushes subnormals to zero (k = 0 otherwise).
+    exponent = tiny_problem_exponent([x, controls, displacements, radius])
+
+    def morphed(x, controls, displacements, radius, weights):
         field = backend.run(_warp_field, morph_field_jax, x, controls, displacements, radius)
-    return apply_point_weights(x, field, weights)
+        return apply_point_weights(x, field, weights)
+
+    return homogeneous_at_normal_scale(morphed, (x, controls, displacements, radius), (weights,), exponent)
 
 
 def _warp_field(points, controls, displacements, radius):

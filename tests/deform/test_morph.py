@@ -133,6 +133,43 @@ def test_stable_and_differentiable_next_to_a_control_in_float64():
         assert bool(jnp.all(jnp.isfinite(g)))
 
 
+@pytest.mark.parametrize("implementation", ["jax", "warp"])
+@pytest.mark.parametrize("dtype, exponent", [(jnp.float64, -1030), (jnp.float32, -140)])
+def test_subnormal_problem_keeps_its_values_and_radius_gradient(implementation, dtype, exponent):
+    """Every length below the normal range (XLA flushes subnormals): the unit-scale answer, scaled."""
+    if implementation == "warp":
+        pytest.importorskip("warp")
+    scale = 2.0**exponent
+    unit_points = np.array([[0.3, 0.1, 0.0], [0.9, -0.4, 0.2], [-0.2, 0.5, 0.1], [4.0, 0.0, 0.0]])
+    unit_controls = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    unit_displacements = np.array([[1.0, 2.0, 3.0], [-1.0, 0.5, 0.0]])
+    unit_radius = np.array([1.0, 0.75])
+    points, controls, displacements, radius = (jnp.asarray(a * scale, dtype) for a in (unit_points, unit_controls, unit_displacements, unit_radius))
+    assert bool(np.all(np.asarray(radius) < np.finfo(np.dtype(dtype)).tiny))  # subnormal radii
+    # The inputs as stored (subnormals keep fewer bits), back at unit scale (exact: a power of two).
+    unit_points, unit_controls, unit_displacements, unit_radius = (
+        np.asarray(a, np.float64) / scale for a in (points, controls, displacements, radius)
+    )
+
+    out = morph_points(points, controls, displacements, radius=radius, implementation=implementation)
+    expected = unit_points + _naive(unit_points, unit_controls, unit_displacements, unit_radius)
+    eps = float(np.finfo(np.dtype(dtype)).eps)
+    # One rounding to the subnormal grid (spacing 2^-1074 / 2^-149) after a unit-scale evaluation.
+    spacing = float(np.finfo(np.dtype(dtype)).smallest_subnormal)
+    np.testing.assert_allclose(np.asarray(out, np.float64), expected * scale, rtol=64 * eps, atol=4 * spacing)
+
+    # d/dr of sum(out) is scale-free (out is homogeneous of degree one in every length): the
+    # unit-scale derivative, by central differences of the float64 reference.
+    def unit_loss(r):
+        return np.sum(_naive(unit_points, unit_controls, unit_displacements, r))
+
+    step = 1e-6
+    expected_gradient = [(unit_loss(unit_radius + step * e) - unit_loss(unit_radius - step * e)) / (2 * step) for e in np.eye(2)]
+    gradient = jax.grad(lambda r: jnp.sum(morph_points(points, controls, displacements, radius=r, implementation=implementation)))(radius)
+    assert np.all(np.abs(expected_gradient) > 0.1)
+    np.testing.assert_allclose(np.asarray(gradient, np.float64), expected_gradient, rtol=max(1e-6, 64 * eps))
+
+
 def test_per_control_and_batched_tensor_radius():
     points, controls, displacements = _random((2, 15, 3), seed=11), _random((2, 5, 3), seed=12), _random((2, 5, 3), seed=13)
     per_control = jnp.array([0.4, 0.6, 0.8, 1.0, 1.2])
