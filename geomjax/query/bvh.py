@@ -242,7 +242,9 @@ def closest_faces(bvh: MeshBVH, points: Float[Array, "*batch 3"], max_distance: 
         TypeError: ``bvh`` is not a MeshBVH, non-float ``points`` or a dtype other than the
             vertices', a non-real ``max_distance``.
         ValueError: ``points`` not of shape ``(..., 3)``, a non-positive or non-finite
-            ``max_distance``.
+            ``max_distance``; a ``bvh`` whose faces or search tree are not those build_bvh
+            made (indices out of range, leaf ranges that are not build_bvh's, e.g. after
+            ``jax.tree.map``; under ``jit`` at run time). Such arrays are never searched.
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -257,9 +259,45 @@ def closest_faces(bvh: MeshBVH, points: Float[Array, "*batch 3"], max_distance: 
     points = checked_query_points("points", points, bvh.vertices, vertices_name="mesh vertices")
     limit = _max_distance(max_distance, points.dtype)
     vertices = jax.lax.stop_gradient(bvh.vertices)
-    # A MeshBVH made for ray casts only carries no tree: build one in the call.
-    tree = bvh.closest_tree if bvh.closest_tree is not None else (bvh_vertices32(vertices), bvh.faces.reshape(-1))
-    return search_closest_faces(tree, vertices, bvh.faces, points, limit)
+    tree, faces, corrupt = _readable_search_arrays(bvh)
+    found = search_closest_faces(tree, vertices, faces, points, limit)
+    message = (
+        "closest_faces: the MeshBVH's faces or search tree are not those build_bvh made (they were modified, e.g. "
+        "by jax.tree.map, or taken from another mesh): pass a MeshBVH made by build_bvh"
+    )
+    return runtime_check(found, corrupt, message, ValueError)
+
+
+def _readable_search_arrays(bvh: MeshBVH) -> tuple[tuple, jax.Array, jax.Array]:
+    """``(tree, faces, corrupt)``: a MeshBVH's search arrays, safe for the Warp kernels to read.
+
+    They are pytree leaves, so ``jax.tree.map`` or a MeshBVH rebuilt from other fields can
+    change them, and the kernels index memory with them. When any index is out of range or the
+    tree's leaf ranges are not the consecutive, non-empty ranges that build_bvh makes,
+    ``corrupt`` is true and the arrays are replaced by zeros (every leaf empty: nothing is
+    found, nothing is read out of bounds), so the caller can raise instead of crashing.
+    """
+    faces = bvh.faces
+    num_faces, num_vertices = faces.shape[0], bvh.vertices.shape[0]
+    corrupt = jnp.any((faces < 0) | (faces >= num_vertices))
+    if bvh.closest_tree is None:
+        # A MeshBVH made for ray casts only carries no tree: one is built in the call.
+        safe_faces = jnp.where(corrupt, 0, faces)
+        return (bvh_vertices32(jax.lax.stop_gradient(bvh.vertices)), safe_faces.reshape(-1)), safe_faces, corrupt
+    from warp_ffi.bvh import tree_shapes
+
+    nodes, leaf_starts, sorted_faces, corners = bvh.closest_tree
+    expected = tree_shapes(num_faces)
+    found = {"nodes": nodes.shape[:1], "leaf_starts": leaf_starts.shape, "faces": sorted_faces.shape, "corners": corners.shape[:1]}
+    if any(tuple(found[name]) != tuple(shape) for name, shape in expected.items()):
+        raise ValueError(
+            f"closest_faces: the MeshBVH's search tree does not fit its {num_faces} faces (arrays of shapes {found}): pass a MeshBVH made by build_bvh"
+        )
+    steps = jnp.diff(leaf_starts)
+    corrupt = corrupt | (leaf_starts[0] != 0) | (leaf_starts[-1] != num_faces) | jnp.any(steps <= 0)
+    corrupt = corrupt | jnp.any((sorted_faces < 0) | (sorted_faces >= num_faces))
+    tree = (nodes, jnp.where(corrupt, 0, leaf_starts), jnp.where(corrupt, 0, sorted_faces), corners)
+    return tree, jnp.where(corrupt, 0, faces), corrupt
 
 
 def closest_face_tree(op_name: str, vertices: jax.Array, faces: np.ndarray) -> tuple:

@@ -243,6 +243,42 @@ def test_forged_or_freed_handles_raise_instead_of_crashing(forge):
     assert bool(hit[0][0]) and abs(float(hit[1][0]) - 2.0) < 0.05
 
 
+@pytest.mark.parametrize("forge", ["shifted indices", "stretched leaves", "empty leaves", "faces out of range", "ray-only faces"])
+def test_forged_search_arrays_raise_instead_of_crashing(forge):
+    # The faces and the oriented-box tree are pytree data too, and the Warp search indexes memory
+    # with them: out-of-range indices or leaf ranges segfaulted before.
+    from geomjax import documented_errors
+
+    vertices, faces = _sphere(jnp.float64, 1)
+    bvh = build_bvh(vertices, faces)
+    nodes, leaf_starts, sorted_faces, corners = bvh.closest_tree
+    if forge == "shifted indices":
+        forged = jax.tree.map(lambda leaf: leaf + 1000 if leaf.dtype == jnp.int32 else leaf, bvh)
+    elif forge == "stretched leaves":
+        forged = eqx.tree_at(lambda b: b.closest_tree, bvh, (nodes, leaf_starts * 50, sorted_faces, corners))
+    elif forge == "empty leaves":
+        forged = eqx.tree_at(lambda b: b.closest_tree, bvh, (nodes, leaf_starts * 0, sorted_faces, corners))
+    elif forge == "faces out of range":
+        forged = eqx.tree_at(lambda b: b.faces, bvh, bvh.faces + vertices.shape[0])
+    else:
+        # Without its tree (as a MeshBVH for ray casts only) the search builds one from the faces.
+        forged = eqx.tree_at(lambda b: (b.faces, b.closest_tree), bvh, (-bvh.faces, None), is_leaf=lambda x: x is None)
+    points = jnp.asarray(np.random.default_rng(4).normal(size=(50, 3)))
+    message = "closest_faces: the MeshBVH's faces or search tree are not those build_bvh made"
+    with pytest.raises(ValueError, match=message):
+        closest_faces(forged, points)
+    with pytest.raises(ValueError, match=message), documented_errors():
+        jax.block_until_ready(jax.jit(closest_faces)(forged, points))
+    with pytest.raises(ValueError, match="search tree does not fit its"):
+        closest_faces(eqx.tree_at(lambda b: b.closest_tree, bvh, (nodes, leaf_starts[:-1], sorted_faces, corners)), points)
+    # The genuine MeshBVH still finds the nearest faces (the brute force's distances; ties at
+    # shared edges may pick another face).
+    corners = vertices[faces[closest_faces(bvh, points)]]
+    nearest, _ = closest_point_on_triangle(points, corners[:, 0], corners[:, 1], corners[:, 2])
+    expected = jnp.sqrt(closest_faces_brute_force(points, vertices, faces)[1])
+    np.testing.assert_allclose(jnp.linalg.norm(nearest - points, axis=-1), expected, rtol=1e-12)
+
+
 def test_refit_moves_the_bvh():
     vertices, faces = _sphere(jnp.float64, 1)
     bvh = build_bvh(vertices, faces)
