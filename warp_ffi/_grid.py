@@ -222,7 +222,8 @@ def is_live_mesh(words: wp.array) -> bool | None:
     """Whether the ``(2,)`` uint32 ``words`` of a handle name a mesh that is alive.
 
     ``None`` where they cannot be read from here: on a CUDA device while a graph is captured
-    (the check would have to synchronise). Elsewhere the words are read on the host (a copy of
+    (the check would have to synchronise; the searches that take a handle are never captured,
+    see ``runs_on_host`` in ``warp_ffi._wrap.CallableFamily``). Elsewhere the words are read on the host (a copy of
     8 bytes on CUDA).
     """
     device = words.device

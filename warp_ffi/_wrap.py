@@ -354,8 +354,11 @@ class CallableFamily(_PerVariant):
             outputs last.
         outputs: the names of the trailing output arguments, or ``outputs(*params)``.
         module: the ``__module__`` whose Warp kernels are loaded before the call.
-        builds: the body allocates (builds a structure in the call), so it cannot be captured
-            in a CUDA graph; or ``builds(*params)``.
+        runs_on_host: the body must run its Python code on every call, so the call is never
+            captured in a CUDA graph (whose replays skip it): it allocates (builds a structure
+            in the call), or it checks data on the host first (a mesh handle's liveness, which a
+            replay with a freed or forged handle would otherwise skip); or
+            ``runs_on_host(*params)``.
         vmap_method: as for ``warp.jax_callable``.
 
     ``family(dtype, *params)(*inputs, shapes=...)`` returns the outputs as a tuple.
@@ -368,14 +371,14 @@ class CallableFamily(_PerVariant):
         *,
         outputs: Sequence[str] | Callable[..., Sequence[str]],
         module: str,
-        builds: bool | Callable[..., bool] = False,
+        runs_on_host: bool | Callable[..., bool] = False,
         vmap_method: str = "sequential",
     ):
         super().__init__()
         self._make_body = make_body
         self._types = types
         self._outputs = outputs if callable(outputs) else lambda *params: outputs
-        self._builds = builds if callable(builds) else lambda *params: builds
+        self._runs_on_host = runs_on_host if callable(runs_on_host) else lambda *params: runs_on_host
         self._module = module
         self._vmap_method = vmap_method
 
@@ -383,7 +386,7 @@ class CallableFamily(_PerVariant):
         arg_types = self._types(WARP_SCALAR[dtype], *params)
         outputs = tuple(self._outputs(*params))
         function = _ffi_function(self._make_body.__name__, arg_types, self._make_body(dtype, *params), self._module)
-        graph_mode = warp.JaxCallableGraphMode.NONE if self._builds(*params) else warp.JaxCallableGraphMode.JAX
+        graph_mode = warp.JaxCallableGraphMode.NONE if self._runs_on_host(*params) else warp.JaxCallableGraphMode.JAX
         wrapped = warp.jax_callable(function, num_outputs=len(outputs), graph_mode=graph_mode, vmap_method=self._vmap_method)
         return _Call(wrapped, arg_types, outputs, (), "callable")
 

@@ -442,7 +442,7 @@ def _point_search(dtype, sign_mode: int, exact: bool, measure: bool, build: bool
 
 
 _point_search_family = CallableFamily(
-    _point_search, _point_types, outputs=_point_outputs, builds=lambda sign_mode, exact, measure, build: build, module=__name__
+    _point_search, _point_types, outputs=_point_outputs, runs_on_host=lambda sign_mode, exact, measure, build: build, module=__name__
 )
 
 

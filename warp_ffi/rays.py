@@ -110,7 +110,9 @@ def _ray_search(dtype, build: bool):
     return search_built
 
 
-_ray_search_family = CallableFamily(_ray_search, _ray_types, outputs=_RAY_OUTPUTS, builds=lambda build: build, module=__name__)
+# Never captured in a CUDA graph: a prepared mesh's handle is checked on the host on every call,
+# a built one is allocated in the call.
+_ray_search_family = CallableFamily(_ray_search, _ray_types, outputs=_RAY_OUTPUTS, runs_on_host=True, module=__name__)
 
 
 def ray_hits(mesh, origins, directions, vertices, faces, max_distance, extent):

@@ -230,7 +230,9 @@ def _search(dtype, build: bool):
     return search_built
 
 
-_search_family = CallableFamily(_search, _search_types, outputs=("nearest",), builds=lambda build: build, module=__name__)
+# Never captured in a CUDA graph: a prepared mesh's handle is checked on the host on every call,
+# a built one is allocated in the call.
+_search_family = CallableFamily(_search, _search_types, outputs=("nearest",), runs_on_host=True, module=__name__)
 
 
 def nearest_valid_faces(

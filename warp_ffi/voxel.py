@@ -461,7 +461,7 @@ def _fractions(dtype, open_mesh: bool):
     return fractions_of
 
 
-_fractions_family = CallableFamily(_fractions, _fraction_types, outputs=("fractions",), builds=True, module=__name__)
+_fractions_family = CallableFamily(_fractions, _fraction_types, outputs=("fractions",), runs_on_host=True, module=__name__)
 
 
 def voxel_fractions(
