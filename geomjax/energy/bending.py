@@ -134,6 +134,25 @@ def _hinge_geometry(vectors: list[jax.Array]):
 @jax.jit
 def bending_terms(points: jax.Array, reference_points: jax.Array, hinges: jax.Array) -> jax.Array:
     """Per-hinge energies ``(B, H)`` for ``(B, N, 3)`` points (the JAX specification)."""
+    delta, stiffness, valid = _angle_changes(points, reference_points, hinges)
+    return jnp.where(valid, stiffness * jnp.square(delta) / 2, jnp.nan)
+
+
+def bending_residuals(points: jax.Array, reference_points: jax.Array, hinges: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Each hinge's term of :func:`surface_bending_energy` as a square: ``(residuals (B, H), valid (B, H))``.
+
+    ``residuals^2`` is the hinge's energy: ``sqrt(l_0^2 / (A_{0,L} + A_{0,R})) wrap(theta -
+    theta_0)``, linear in the angle change, as a Gauss-Newton solver needs (the square root of
+    the energy is not differentiable at the rest shape). Invalid hinges give 0 and ``valid``
+    false.
+    """
+    delta, stiffness, valid = _angle_changes(points, reference_points, hinges)
+    # The stiffness of an invalid hinge may be anything: it is replaced before the square root.
+    return jnp.where(valid, jnp.sqrt(jnp.where(valid, stiffness, 2) / 2) * delta, 0), valid
+
+
+def _angle_changes(points: jax.Array, reference_points: jax.Array, hinges: jax.Array):
+    """Per hinge ``(wrap(theta - theta_0), 2 l_0^2 / (|n_{0,L}| + |n_{0,R}|), valid)``, each ``(B, H)``."""
     columns = [hinges[:, k] for k in range(4)]
     current, in_range = gather_vertices(points, columns)
     reference, _ = gather_vertices(reference_points, columns)
@@ -156,4 +175,4 @@ def bending_terms(points: jax.Array, reference_points: jax.Array, hinges: jax.Ar
     one = jnp.ones((), points.dtype)
     area_sum = jnp.sqrt(jnp.where(valid, left0_sq, one)) + jnp.sqrt(jnp.where(valid, right0_sq, one))
     stiffness = 2 * edge0_sq / area_sum
-    return jnp.where(valid, stiffness * jnp.square(delta) / 2, jnp.nan)
+    return delta, stiffness, valid

@@ -144,6 +144,57 @@ def strain_terms(points: jax.Array, reference_points: jax.Array, cells: jax.Arra
     ``R`` is replaced by the identity before the triangular solve, so nothing non-finite is
     ever differentiated.
     """
+    strain, reference_measure, valid = green_strains(points, reference_points, cells)
+    m = max(i for i, _ in strain) + 1
+    trace = _trace(strain, m)
+    mean = trace / m
+    deviatoric = jnp.square(strain[0, 0] - mean)
+    for i in range(1, m):
+        deviatoric = deviatoric + jnp.square(strain[i, i] - mean)
+    if m > 1:
+        shear = sum(jnp.square(strain[i, j]) for i in range(m) for j in range(i + 1, m))
+        deviatoric = deviatoric + 2 * shear
+    density = shear_modulus * deviatoric + bulk_term * jnp.square(trace)
+    return jnp.where(valid, reference_measure * density, jnp.nan)
+
+
+def strain_residuals(points: jax.Array, reference_points: jax.Array, cells: jax.Array, shear_modulus: float, bulk_term: float):
+    """Each cell's term of :func:`simplex_strain_energy` as a sum of squares: ``(residuals (B, M, R), valid (B, M))``.
+
+    ``sum_k residuals[..., k]^2`` is the cell's energy for Python reals ``shear_modulus >= 0`` and
+    ``bulk_term = lambda / 2 + mu / m >= 0``: ``sqrt(V_0 mu)`` times the deviatoric diagonal
+    strains, ``sqrt(2 V_0 mu)`` times the off-diagonal ones and ``sqrt(V_0 bulk_term)`` times the
+    trace (``R = m (m + 1) / 2 + 1``). They are linear in the strain, as a Gauss-Newton solver
+    needs (the square root of the energy is not differentiable at the rest shape). Invalid cells
+    get the residuals of an identity frame and ``valid`` false.
+    """
+    strain, reference_measure, valid = green_strains(points, reference_points, cells)
+    m = max(i for i, _ in strain) + 1
+    trace = _trace(strain, m)
+    root_measure = jnp.sqrt(jnp.where(valid, reference_measure, 1))
+    shear, bulk = root_measure * math.sqrt(shear_modulus), root_measure * math.sqrt(bulk_term)
+    parts = [shear * (strain[i, i] - trace / m) for i in range(m)]
+    parts += [math.sqrt(2) * shear * strain[i, j] for i in range(m) for j in range(i + 1, m)]
+    parts.append(bulk * trace)
+    return jnp.stack(parts, axis=-1), valid
+
+
+def _trace(strain: dict, m: int) -> jax.Array:
+    trace = strain[0, 0]
+    for i in range(1, m):
+        trace = trace + strain[i, i]
+    return trace
+
+
+def green_strains(points: jax.Array, reference_points: jax.Array, cells: jax.Array):
+    """Per cell, the Green strain in the reference cell's intrinsic frame.
+
+    Returns ``(strain, V_0, valid)``: ``strain[i, j]`` (``i <= j < m``) arrays ``(B, M)`` of
+    ``eps = (F^T F - I) / 2`` with ``F = E^T R^{-1}`` (``E_0^T = Q R`` by modified Gram-Schmidt),
+    the reference measure ``V_0 = |prod diag R| / m!`` and whether the cell is valid (finite, with
+    a non-degenerate reference; an invalid cell's ``R`` is the identity, so nothing non-finite is
+    differentiated).
+    """
     edges, reference_edges, usable = simplex_edges(points, reference_points, cells)
     m = len(edges)
     _, r = gram_schmidt(reference_edges)
@@ -164,15 +215,4 @@ def strain_terms(points: jax.Array, reference_points: jax.Array, cells: jax.Arra
         columns.append(v / r[k, k][..., None])
     cauchy_green = {(i, j): dot(columns[i], columns[j]) for i in range(m) for j in range(i, m)}
     strain = {(i, j): (c - 1) / 2 if i == j else c / 2 for (i, j), c in cauchy_green.items()}
-    trace = strain[0, 0]
-    for i in range(1, m):
-        trace = trace + strain[i, i]
-    mean = trace / m
-    deviatoric = jnp.square(strain[0, 0] - mean)
-    for i in range(1, m):
-        deviatoric = deviatoric + jnp.square(strain[i, i] - mean)
-    if m > 1:
-        shear = sum(jnp.square(strain[i, j]) for i in range(m) for j in range(i + 1, m))
-        deviatoric = deviatoric + 2 * shear
-    density = shear_modulus * deviatoric + bulk_term * jnp.square(trace)
-    return jnp.where(valid, reference_measure * density, jnp.nan)
+    return strain, reference_measure, valid
