@@ -1,6 +1,6 @@
 """The example scripts run end to end at their ``--smoke`` size and do what they claim.
 
-All four scripts start together in one module fixture (separate processes, so they overlap their
+All the scripts start together in one module fixture (separate processes, so they overlap their
 JAX/Warp/torch start-up and compilation on the available cores); each test then checks one
 script's exit status, its PNG files and the figures it prints.
 """
@@ -22,6 +22,7 @@ EXAMPLES = {
     "shape_optimization_torch": ["shape_optimization_torch.png", "shape_optimization_torch_loss.png"],
     "sobolev_smoothing": ["sobolev_smoothing.png", "sobolev_smoothing_loss.png"],
     "design_batch_sharding": ["design_batch_sharding.png", "design_batch_sharding_designs.png"],
+    "register_template": ["register_template.png"],
 }
 TIMEOUT_S = 300
 
@@ -90,8 +91,11 @@ def test_shape_optimization_loss_falls(smoke_runs, name):
 def test_jax_and_torch_examples_optimise_the_same_function(smoke_runs):
     jax_losses = _losses(_checked_run(smoke_runs, "shape_optimization_jax"))
     torch_losses = _losses(_checked_run(smoke_runs, "shape_optimization_torch"))
+    # The same objective at the same start, through geomjax and through torch_bridge ...
     assert jax_losses[0] == pytest.approx(torch_losses[0], rel=1e-5)
-    assert jax_losses[1] == pytest.approx(torch_losses[1], rel=0.05)
+    # ... minimised by optimistix's L-BFGS and by torch's Adam in the same number of steps: the
+    # quasi-Newton method ends lower (about 20x at the smoke size).
+    assert jax_losses[1] < torch_losses[1]
 
 
 def test_sobolev_descent_is_smooth_and_converges(smoke_runs):
@@ -107,6 +111,12 @@ def test_design_batch_sharding_matches_unsharded(smoke_runs):
     assert "4 cpu devices" in output or "gpu devices" in output
     gap = float(re.search(r"max relative difference (\S+)", output).group(1))
     assert gap <= 1e-5
+
+
+def test_registration_lands_on_the_target(smoke_runs):
+    output = _checked_run(smoke_runs, "register_template")
+    mean_before, mean_after = map(float, re.search(r"distance to target: mean (\S+) -> (\S+),", output).groups())
+    assert mean_after < 0.1 * mean_before, output[-2000:]
 
 
 @pytest.mark.parametrize("name", sorted(EXAMPLES))
