@@ -268,6 +268,24 @@ def _():
     check(deform, args, [shard(a, "Explicit", 0) for a in args], "float64", keep_axis=0)
 
 
+@case("design-sobolev-Explicit-jax")
+def _():
+    # The JAX path runs with the split axis turned Auto (a lax.map over designs and lineax's
+    # structure checks refuse per-shard types): values and gradients.
+    sphere = g.icosphere(1, dtype="float64")
+    points = jnp.broadcast_to(sphere.points, (NUM_DESIGNS, *sphere.points.shape))
+    displacement = rng_array(10, points.shape, "float64", 0.01)
+
+    def objective(p, d):
+        return jnp.sum(jnp.sin(g.sobolev_deform_points(p, sphere.cells, d, length_scale=0.3, implementation="jax")))
+
+    fn = jax.value_and_grad(objective, argnums=(0, 1))
+    expected = jax.jit(fn)(points, displacement)
+    actual = jax.jit(fn)(*[shard(a, "Explicit", 0) for a in (points, displacement)])
+    close(actual, expected, "float64")
+    assert sharded_axis(actual[1][0], 0) and sharded_axis(actual[1][1], 0), actual[1][0].sharding.spec
+
+
 @case("design-and-query-morph-Explicit")
 def _():
     # A 2 x 2 mesh splitting designs and points at once; the controls (split over designs only)

@@ -7,7 +7,8 @@ port; Gloo collectives on CPU). Every process builds its rows of the global inpu
 its rows with the same computation unsharded (issue 17): SDF on split query points, and FFD and
 RBF on split points with the gradient of their replicated lattice or control displacements (a
 cross-process sum), each on both backends; the six energies per design and cell on the Warp
-backend over a split batch of designs. Processes are bounded in time and always cleaned up.
+backend over a split batch of designs; Sobolev smoothing of a split batch of designs, eager and
+jitted, on both backends. Processes are bounded in time and always cleaned up.
 """
 
 from __future__ import annotations
@@ -67,6 +68,8 @@ CASES = [
     ("rbf-jax", 2, 2),
     ("rbf-warp", 2, 2),
     ("energies-warp", 2, 2),
+    ("sobolev-jax", 2, 2),
+    ("sobolev-warp", 2, 2),
     ("sdf-jax", 4, 1),
 ]  # fmt: skip
 

@@ -15,7 +15,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors, runtime_check
 from .._points import add_batch_axis, remove_batch_axis
-from .._sharding import map_local_shards
+from .._sharding import map_local_shards, on_auto_axes
 from .._validate import (
     as_index_array,
     check_coordinates,
@@ -158,8 +158,9 @@ def sobolev_deform_points(
     Warp path (README, "Backends and transforms"). No gradient flows to ``cells``,
     ``fixed_points``, ``length_scale`` or ``tolerance``.
 
-    Sharding: see the README's "Sharding"; under ``Explicit`` axes only the Warp path solves
-    shard by shard; the JAX path needs ``Auto`` axes.
+    Sharding: see the README's "Sharding"; under ``Explicit`` axes the Warp path solves shard by
+    shard, and the JAX path runs with those axes turned ``Auto`` (XLA places the solve); both
+    return the input's split.
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -235,7 +236,10 @@ def deform_with_topology(points, cells, displacement, *, length_scale, fixed_poi
     if concrete_cells:
         host_cells = np.asarray(cells)
         check_host_index_range(host_cells, num_points, _index_range_message(num_points))
-        if x.size and cells.shape[0] and not isinstance(x, jax.core.Tracer):
+        # The early check names the degenerate cell; it reads the points on the host, which a
+        # process cannot do for rows on other processes (the solve's own runtime check covers
+        # those, with the same message less the cell).
+        if x.size and cells.shape[0] and not isinstance(x, jax.core.Tracer) and x.is_fully_addressable:
             _check_nondegenerate(x, cells)
         topology = helmholtz_topology(host_cells, num_points)
     pattern, hierarchy = (None, None) if topology is None else topology
@@ -243,21 +247,22 @@ def deform_with_topology(points, cells, displacement, *, length_scale, fixed_poi
         _deform,
         pattern=pattern,
         hierarchy=hierarchy,
-        length_scale_squared=jnp.asarray(length_scale * length_scale, dtype),
-        tolerance=jnp.asarray(tolerance, dtype),
+        # NumPy scalars, constants of the program: a JAX array made here would take the sharding
+        # of a surrounding jax.set_mesh, which shard_map refuses to close over.
+        length_scale_squared=np.asarray(length_scale * length_scale, dtype),
+        tolerance=np.asarray(tolerance, dtype),
         max_iterations=max_iterations,
         backend=backend,
         check_indices=not concrete_cells,
         field_only=field_only,
     )
+    # Designs are solved independently: explicitly split ones shard by shard (see _sharding).
+    # The runtime checks need check_vma off, which is safe as only the integer cells and
+    # non-differentiated constants are replicated.
     if backend.is_warp:
-        # Designs are solved independently: explicitly split ones shard by shard (see
-        # _sharding). The solver's error_if needs check_vma off, which is safe as only the
-        # integer cells and non-differentiated constants are replicated. (The JAX path's
-        # lineax solve rejects the per-shard types, see the docstring.)
         out = map_local_shards(deform, (x, cells, d, free), (1, 0, 1, 1), out_axes=1, check_vma=False)
     else:
-        out = deform(x, cells, d, free)
+        out = on_auto_axes(deform, x, cells, d, free)
     return remove_batch_axis(out, batched)
 
 
@@ -410,8 +415,11 @@ def _jax_solve(points, displacement, free, *, cells, pattern: RowPattern | None,
         jacobi_within = (tolerance, min(JACOBI_ITERATIONS, 3 * max_iterations // 4)) if hierarchy else None
         options["preconditioner"] = MultilevelPreconditioner.for_helmholtz(rows, mass, length_scale_squared, free, hierarchy, jacobi_within=jacobi_within)
     solver = JacobiPCG(tolerance, max_iterations, _NAME)
-    structure = jax.ShapeDtypeStruct(points.shape, points.dtype)
-    return lx.linear_solve(operator.as_linear_operator(structure), rhs, solver, options=options).value
+    structure = jax.eval_shape(lambda: points)  # with its type's sharding (per-shard under shard_map)
+    # throw=False: JacobiPCG reports its failures itself (runtime_branched_check, typed and
+    # without a host callback on CPU); lineax's own check would be an equinox host callback,
+    # and JAX does not keep programs with host callbacks in its persistent compilation cache.
+    return lx.linear_solve(operator.as_linear_operator(structure), rhs, solver, options=options, throw=False).value
 
 
 # ---------------------------------------------------------------------------------------------
