@@ -19,6 +19,7 @@ a kernel adds into (adjoint scatters) are passed as in/out buffers that the call
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import functools
 import os
@@ -106,6 +107,24 @@ def cpu_threads() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
+
+
+def _finish_pending_calls() -> None:
+    """Wait, at interpreter exit, for computations still running (``atexit``).
+
+    JAX dispatches asynchronously: a script may end while a program with Warp calls still runs on
+    XLA's threads (under ``shard_map`` they always run there). Each Warp call needs the GIL, which
+    the interpreter stops handing out once it finalises, while finalising waits for those threads
+    to end: the process hung at exit. Waiting here, before finalisation, lets them finish. A
+    failure of such a computation has nobody left to report to, so it is not raised.
+    """
+    try:
+        jax.block_until_ready(jax.live_arrays())
+    except Exception:  # noqa: BLE001 - see the docstring
+        pass
+
+
+atexit.register(_finish_pending_calls)
 
 
 @functools.cache
