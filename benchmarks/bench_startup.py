@@ -13,8 +13,17 @@ cache through :func:`geomjax.enable_compilation_cache`, and Warp's kernel cache 
   filled (what a user meets from the second run of a script on);
 * ``steady_s``: the best of three later calls.
 
-Target (issue 26): ``first_warm_s`` under 2 s for every op. Usage:
-``python benchmarks/bench_startup.py [--quick] [--only name,name]`` (``--quick``: four ops).
+Target (issue 26): ``first_warm_s`` under 2 s for every op.
+
+Table ``startup_scripts``: the README demo (``examples/deform_demo.py``) and every ``python``
+code block of the README, each run as a whole Python process twice on one empty cache folder
+(``GEOMJAX_CACHE_DIR`` and ``WARP_CACHE_PATH``; the blocks are run after
+``geomjax.enable_compilation_cache()``, as the README advises): wall time with the caches empty,
+then warm. Target: under 10 s warm. The multi-host block needs several processes; it is run by
+``examples/multiprocess_design_batch.py`` (``tests/test_multiprocess.py``), not here.
+
+Usage: ``python benchmarks/bench_startup.py [--quick] [--only name,name] [--scripts-only]``
+(``--quick``: four ops and no scripts).
 """
 
 from __future__ import annotations
@@ -31,6 +40,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 TARGET_S = 2.0
+SCRIPT_TARGET_S = 10.0
 QUICK_OPS = ("morph_points", "free_form_deform_points", "signed_distance_field", "simplex_strain_energy")
 
 
@@ -74,10 +84,48 @@ def _run_child(name: str, cache: str) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def readme_blocks() -> list[tuple[str, str]]:
+    """``(label, code)`` of the README's ``python`` blocks, without the multi-host one."""
+    text = (REPO / "README.md").read_text()
+    blocks, previous = [], ""
+    for part in text.split("```python\n")[1:]:
+        code = part.split("```", 1)[0]
+        if "<!-- multihost-code -->" not in previous[-200:]:
+            first = next(line for line in code.splitlines() if line.strip() and not line.startswith(("import", "from")))
+            blocks.append((f"README block: {first.strip()[:48].rstrip()}", code))
+        previous = part
+    return blocks
+
+
+def _timed_process(command: list[str], cache: str) -> float:
+    env = {**os.environ, "GEOMJAX_CACHE_DIR": str(Path(cache) / "jax"), "WARP_CACHE_PATH": str(Path(cache) / "warp")}
+    start = time.perf_counter()
+    done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
+    seconds = time.perf_counter() - start
+    if done.returncode != 0:
+        raise RuntimeError(f"{command[-1][:200]!r} failed\n{done.stderr[-3000:]}")
+    return seconds
+
+
+def script_rows() -> list[dict]:
+    scripts = [("examples/deform_demo.py", [sys.executable, "examples/deform_demo.py", "--output", "%OUT%/deform_demo.png"])]
+    for label, code in readme_blocks():
+        scripts.append((label, [sys.executable, "-c", "import geomjax; geomjax.enable_compilation_cache()\n" + code]))
+    rows = []
+    for label, command in scripts:
+        with tempfile.TemporaryDirectory(prefix="geomjax-startup-") as cache:
+            command = [part.replace("%OUT%", cache) for part in command]
+            cold, warm = _timed_process(command, cache), _timed_process(command, cache)
+        rows.append({"script": label, "first_cold_s": cold, "first_warm_s": warm, "met": warm < SCRIPT_TARGET_S})
+        print(f"{label}: {cold:.1f} s cold, {warm:.1f} s warm", flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--only", default="")
+    parser.add_argument("--scripts-only", action="store_true")
     parser.add_argument("--child", nargs=2, metavar=("NAME", "CACHE"))
     args = parser.parse_args()
     if args.child:
@@ -86,6 +134,11 @@ def main() -> None:
     sys.path.insert(0, str(HERE))
     sys.path.insert(0, str(REPO))
     from _harness import report
+
+    if not args.quick and not args.only:
+        report("startup_scripts", script_rows())
+    if args.scripts_only:
+        return
 
     from tests.op_cases import CASES
 
