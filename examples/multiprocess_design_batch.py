@@ -87,6 +87,9 @@ def worker(process_id: int, num_processes: int, port: int, devices: int) -> None
                                initialization_timeout=60)
     import numpy as np
 
+    import geomjax
+
+    geomjax.enable_compilation_cache()  # processes after the first load the compiled programs
     value, mine, loss, whole = design_batch_on_every_process()
     # The same batch whole, on one of this process's devices.
     device = jax.local_devices()[0]

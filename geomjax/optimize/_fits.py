@@ -19,8 +19,10 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
+from .._errors import raises_documented_errors
 from ..deform.ffd import free_form_deform_points
 from ..deform.morph import morph_points
+from ._outcome import fitted
 
 __all__ = ["fit_free_form_deformation", "fit_morph"]
 
@@ -29,12 +31,12 @@ __all__ = ["fit_free_form_deformation", "fit_morph"]
 _DEFAULT_TOLERANCE = {jnp.dtype(jnp.float32): 1e-6, jnp.dtype(jnp.float64): 1e-10}
 
 
-def _least_squares(residuals, params0, args, solver, max_steps: int, throw: bool):
+def _least_squares(op_name: str, residuals, params0, args, solver, max_steps: int, throw: bool, return_solution: bool):
     if solver is None:
         tolerance = _DEFAULT_TOLERANCE.get(jnp.dtype(params0.dtype), 1e-6)
         solver = optx.GaussNewton(rtol=tolerance, atol=tolerance)
-    solution: optx.Solution = optx.least_squares(residuals, solver, params0, args=args, max_steps=max_steps, throw=throw, adjoint=optx.ImplicitAdjoint())
-    return solution.value
+    solution: optx.Solution = optx.least_squares(residuals, solver, params0, args=args, max_steps=max_steps, throw=False, adjoint=optx.ImplicitAdjoint())
+    return fitted(solution, op_name=op_name, max_steps=max_steps, throw=throw, return_solution=return_solution)
 
 
 def _with_penalty(misfit: jax.Array, params: jax.Array, regularization: float) -> jax.Array:
@@ -55,9 +57,14 @@ def _check_targets(points: jax.Array, target_points) -> jax.Array:
         raise ValueError(
             f"target_points must have the shape and dtype of points {points.shape} {points.dtype}, got {target_points.shape} {target_points.dtype}"
         )
+    # Concrete targets are checked now; traced ones make the solve's residuals non-finite, which
+    # the solve's result reports (RuntimeError, see _outcome).
+    if not isinstance(target_points, jax.core.Tracer) and target_points.is_fully_addressable and not bool(jnp.all(jnp.isfinite(target_points))):
+        raise ValueError("target_points must be finite")
     return target_points
 
 
+@raises_documented_errors
 def fit_free_form_deformation(
     points: Float[Array, "num_points num_dims"],
     target_points: Float[Array, "num_points num_dims"],
@@ -70,6 +77,7 @@ def fit_free_form_deformation(
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 64,
     throw: bool = True,
+    return_solution: bool = False,
     implementation: str | None = None,
 ) -> Float[Array, "*resolution num_dims"]:
     """The FFD lattice that moves ``points`` onto ``target_points`` in least squares.
@@ -93,8 +101,13 @@ def fit_free_form_deformation(
         solver: an optimistix least-squares solver (default ``optimistix.GaussNewton`` with
             tolerances ``1e-6`` in float32, ``1e-10`` in float64; its QR solve needs the points
             to determine every node, or a ``regularization``).
-        max_steps, throw: as for ``optimistix.least_squares`` (``throw=True``: a fit that does
-            not converge raises).
+        max_steps: the solver's step budget.
+        throw: ``True``: a solve that does not succeed (not converged within ``max_steps``, or a
+            non-finite residual) raises ``RuntimeError``; ``False``: the last iterate is returned
+            without a check.
+        return_solution: return the whole ``optimistix.Solution`` (``.value`` the lattice,
+            ``.result`` whether the solve succeeded, ``.stats`` its steps) instead of the lattice,
+            with no check: for callers that handle a failed fit themselves.
         implementation: the deformation's backend, as for :func:`geomjax.free_form_deform_points`.
 
     Returns:
@@ -103,9 +116,11 @@ def fit_free_form_deformation(
         ``target_points`` fits a batch.
 
     Raises:
-        ValueError: ``target_points`` of another shape or dtype, a negative or non-finite
-            ``regularization``, and the errors of :func:`geomjax.free_form_deform_points`.
-        RuntimeError: with ``throw=True``, a fit that does not converge within ``max_steps``.
+        ValueError: ``target_points`` of another shape or dtype, or not finite (checked when
+            concrete), a negative or non-finite ``regularization``, and the errors of
+            :func:`geomjax.free_form_deform_points`.
+        RuntimeError: with ``throw=True``, a solve that does not succeed (at run time under
+            ``jit``), the fit's message first.
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -131,9 +146,10 @@ def fit_free_form_deformation(
         return _with_penalty(moved - targets, lattice, regularization)
 
     lattice0 = jnp.zeros((*resolution, points.shape[-1]), points.dtype)
-    return _least_squares(residuals, lattice0, (points, target_points), solver, max_steps, throw)
+    return _least_squares("fit_free_form_deformation", residuals, lattice0, (points, target_points), solver, max_steps, throw, return_solution)
 
 
+@raises_documented_errors
 def fit_morph(
     points: Float[Array, "num_points num_dims"],
     target_points: Float[Array, "num_points num_dims"],
@@ -145,6 +161,7 @@ def fit_morph(
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 64,
     throw: bool = True,
+    return_solution: bool = False,
     implementation: str | None = None,
 ) -> Float[Array, "num_controls num_dims"]:
     """The control displacements of :func:`geomjax.morph_points` that move ``points`` onto
@@ -158,16 +175,19 @@ def fit_morph(
         points, target_points: ``(N, D)`` positions and their measured positions (same dtype).
         control_points: ``(C, D)`` handles.
         radius, kernel, implementation: as for :func:`geomjax.morph_points`.
-        regularization, solver, max_steps, throw: as for :func:`fit_free_form_deformation`.
+        regularization, solver, max_steps, throw, return_solution: as for
+            :func:`fit_free_form_deformation`.
 
     Returns:
         ``(C, D)`` control displacements, differentiable with respect to ``points``,
         ``target_points``, ``control_points`` and an array ``radius`` (implicit adjoint).
 
     Raises:
-        ValueError: ``target_points`` of another shape or dtype, a negative or non-finite
-            ``regularization``, and the errors of :func:`geomjax.morph_points`.
-        RuntimeError: with ``throw=True``, a fit that does not converge within ``max_steps``.
+        ValueError: ``target_points`` of another shape or dtype, or not finite (checked when
+            concrete), a negative or non-finite ``regularization``, and the errors of
+            :func:`geomjax.morph_points`.
+        RuntimeError: with ``throw=True``, a solve that does not succeed (at run time under
+            ``jit``), the fit's message first.
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -191,4 +211,4 @@ def fit_morph(
         return _with_penalty(moved - targets, displacements, regularization)
 
     displacements0 = jnp.zeros(control_points.shape, points.dtype)
-    return _least_squares(residuals, displacements0, (points, target_points, control_points, radius), solver, max_steps, throw)
+    return _least_squares("fit_morph", residuals, displacements0, (points, target_points, control_points, radius), solver, max_steps, throw, return_solution)

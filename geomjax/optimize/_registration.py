@@ -41,12 +41,14 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int
 
 from .._dispatch import warp_available
+from .._errors import raises_documented_errors
 from .._geometry import triangle_normal
 from ..deform.ffd import free_form_deform_points
 from ..energy.bending import bending_residuals
 from ..energy.strain import strain_residuals
 from ..mesh import Mesh
 from ..query.bvh import bvh_vertices32, closest_face_tree, closest_faces_brute_force, search_closest_faces
+from ._outcome import fitted
 
 __all__ = ["register_surface"]
 
@@ -59,6 +61,7 @@ _DEFAULT_TOLERANCE = {jnp.dtype(jnp.float32): 1e-5, jnp.dtype(jnp.float64): 1e-8
 _DEFAULT_REGULARIZATION = {jnp.dtype(jnp.float32): 1e-6, jnp.dtype(jnp.float64): 1e-10}
 
 
+@raises_documented_errors
 def register_surface(
     template_points: Float[Array, "num_template_vertices 3"],
     template_faces: Int[Array, "num_template_faces 3"],
@@ -75,6 +78,7 @@ def register_surface(
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 200,
     throw: bool = True,
+    return_solution: bool = False,
     implementation: str | None = None,
 ) -> Float[Array, "*resolution 3"]:
     """The FFD lattice that moves a template triangle surface onto a target surface.
@@ -111,8 +115,10 @@ def register_surface(
             equations, ``lineax.Normal(lineax.Cholesky())``, with tolerances ``1e-5`` in float32,
             ``1e-8`` in float64; plain ``optimistix.GaussNewton`` can cycle between two
             assignments of nearest faces and never meet its tolerance).
-        max_steps, throw: as for ``optimistix.least_squares`` (``throw=True``: a registration
-            that does not converge raises).
+        max_steps, throw, return_solution: as for
+            :func:`geomjax.optimize.fit_free_form_deformation` (``throw=True``: a registration
+            that does not succeed within ``max_steps`` raises; ``return_solution=True``: the
+            ``optimistix.Solution``, whose ``result`` says whether it did).
         implementation: backend of the deformation, the energies and the face search
             (``None``: the defaults, with the Warp search tree when warp-lang is installed;
             ``"jax"``: brute-force search in JAX, for small targets).
@@ -128,8 +134,8 @@ def register_surface(
         ValueError: bad shapes (not ``(V, 3)`` / ``(F, 3)``, a ``resolution`` without three
             entries), negative or non-finite weights, face indices out of range, and the errors
             of :func:`geomjax.free_form_deform_points` and the energies.
-        RuntimeError: with ``throw=True``, a registration that does not converge within
-            ``max_steps``.
+        RuntimeError: with ``throw=True``, a registration that does not succeed within
+            ``max_steps`` (at run time under ``jit``), its message first.
 
     Example:
         >>> import jax.numpy as jnp, numpy as np
@@ -177,18 +183,19 @@ def register_surface(
     )  # fmt: skip
     lattice0 = jnp.zeros((*resolution, 3), dtype)
     meshes = (template.points, template.cells, target.points, target.cells, tree, hinges)
-    return _solve(lattice0, meshes, solver, max_steps, throw, options)
+    solution = _solve(lattice0, meshes, solver, max_steps, options)
+    return fitted(solution, op_name=_NAME, max_steps=max_steps, throw=throw, return_solution=return_solution)
 
 
 @eqx.filter_jit
-def _solve(lattice0, meshes, solver, max_steps: int, throw: bool, options: dict):
+def _solve(lattice0, meshes, solver, max_steps: int, options: dict) -> optx.Solution:
     """The least-squares solve, compiled once per shapes and options (arrays traced, the rest static)."""
     template_points, template_cells, target_points, target_cells, tree, hinges = meshes
     residuals = registration_residuals(template_cells, target_cells, tree, hinges, **options)
     solution: optx.Solution = optx.least_squares(
-        residuals, solver, lattice0, args=(template_points, target_points), max_steps=max_steps, throw=throw, adjoint=optx.ImplicitAdjoint()
+        residuals, solver, lattice0, args=(template_points, target_points), max_steps=max_steps, throw=False, adjoint=optx.ImplicitAdjoint()
     )
-    return solution.value
+    return solution
 
 
 def registration_residuals(

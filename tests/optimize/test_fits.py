@@ -7,6 +7,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 from geomjax import free_form_deform_points, morph_points
@@ -96,3 +97,23 @@ def test_fit_errors():
         fit_free_form_deformation(points, points, (3, 3), **BOX)
     with pytest.raises(ValueError, match="target_points must have the shape and dtype of points"):
         fit_morph(points, points.astype(jnp.float32), points[:3], radius=0.5)
+
+
+def test_non_finite_targets_and_failed_solves_are_reported():
+    points = _rng_points(9, 40)
+    bad = points.at[3, 1].set(jnp.nan)
+    with pytest.raises(ValueError, match="target_points must be finite"):
+        fit_free_form_deformation(points, bad, RESOLUTION, **BOX)
+    with pytest.raises(ValueError, match="target_points must be finite"):
+        fit_morph(points, bad, points[:4], radius=0.5)
+    # A Gauss-Newton step that cannot confirm its tolerance in one step (nonlinear in nothing,
+    # but max_steps=1 leaves no step to check convergence): optimistix's result says so.
+    moved = 1.2 * points
+    with pytest.raises(RuntimeError, match=r"fit_free_form_deformation: the least-squares solve did not succeed within max_steps=1"):
+        fit_free_form_deformation(points, moved, RESOLUTION, max_steps=1, **BOX)
+    solution = fit_free_form_deformation(points, moved, RESOLUTION, max_steps=1, return_solution=True, **BOX)
+    assert solution.result == optx.RESULTS.nonlinear_max_steps_reached
+    assert solution.value.shape == (*RESOLUTION, 3)
+    # Traced non-finite targets (no eager check) fail the solve's own check.
+    with pytest.raises(RuntimeError, match="fit_morph: the least-squares solve did not succeed"):
+        jax.vmap(lambda t: fit_morph(points, t, points[:4], radius=0.5))(jnp.stack([moved, bad]))

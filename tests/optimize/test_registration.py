@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 from geomjax import Mesh, free_form_deform_points, icosphere, signed_distance_field, simplex_strain_energy, surface_bending_energy
@@ -117,3 +118,15 @@ def test_errors():
         register_surface(points, faces, points.astype(jnp.float32), faces, RESOLUTION, **BOX)
     with pytest.raises(ValueError, match="triangle surfaces in 3-D"):
         register_surface(points[:, :2], faces, points[:, :2], faces, RESOLUTION, **BOX)
+
+
+def test_a_registration_that_does_not_finish_is_reported():
+    points, faces = _sphere()
+    stretched = points * jnp.array([1.3, 1.0, 0.8])
+    with pytest.raises(RuntimeError, match=r"register_surface: the least-squares solve did not succeed within max_steps=2"):
+        register_surface(points, faces, stretched, faces, RESOLUTION, max_steps=2, **BOX)
+    solution = register_surface(points, faces, stretched, faces, RESOLUTION, max_steps=2, return_solution=True, **BOX)
+    assert solution.result == optx.RESULTS.nonlinear_max_steps_reached
+    # Given the steps it needs, the same problem succeeds (the failure above is the budget's).
+    full = register_surface(points, faces, stretched, faces, RESOLUTION, return_solution=True, **BOX)
+    assert full.result == optx.RESULTS.successful
