@@ -35,8 +35,8 @@ import argparse
 import time
 from pathlib import Path
 
-import jax
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx

@@ -33,13 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from _render import loss_curves, overlay_with_target
-from _shape_problem import (
-    LEARNING_RATE,
-    SIZES,
-    distance_report,
-    make_problem,
-    objective_terms,
-)
+from _shape_problem import LEARNING_RATE, SIZES, distance_report, make_problem, objective_terms
 from tqdm import tqdm
 
 import geomjax
