@@ -86,6 +86,32 @@ def main() -> None:
         # Jitted and eager: an eager op must not read rows held by other processes.
         split_values = [_local_part(call(global_points), lo, hi) for call in (jax.jit(distances), distances)]
         result["max_relative_difference"] = max(_relative_difference(v, reference) for v in split_values)
+    elif case.startswith(("rays", "shrinkwrap")):
+        # Split query points (ray origins, points to project), the mesh replicated; jitted and
+        # eager.
+        implementation = case.split("-")[1]
+        sphere = gj.icosphere(2)
+        if case.startswith("rays"):
+            directions = -points / np.linalg.norm(points, axis=1, keepdims=True)  # towards the sphere
+            global_directions = jax.make_array_from_process_local_data(split, directions[lo:hi], directions.shape)
+            unsharded_directions = jax.device_put(directions, local_device)
+
+            def query(q, d):
+                hit = gj.ray_mesh_intersect(sphere.points, sphere.cells, q, d, implementation=implementation)
+                return hit[1]  # the distances (inf where missed)
+
+            arguments, unsharded = (global_points, global_directions), (unsharded_points, unsharded_directions)
+        else:
+
+            def query(q):
+                return gj.shrinkwrap_points(q, sphere.points, sphere.cells, implementation=implementation)
+
+            arguments, unsharded = (global_points,), (unsharded_points,)
+        reference = np.asarray(query(*unsharded))[lo:hi]
+        split_values = [_local_part(call(*arguments), lo, hi) for call in (jax.jit(query), query)]
+        finite = np.isfinite(reference)
+        assert all(np.array_equal(np.isfinite(v), finite) for v in split_values), "misses differ"
+        result["max_relative_difference"] = max(_relative_difference(v[finite], reference[finite]) for v in split_values)
     elif case.startswith(("ffd", "rbf")):
         implementation = case.split("-")[1]
         if case.startswith("ffd"):

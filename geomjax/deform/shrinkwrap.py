@@ -13,6 +13,7 @@ from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors
 from .._geometry import closest_point_on_triangle, overflow_safe_norm, scaled_triangle, triangle_normal
 from .._points import add_batch_axis, apply_point_weights, remove_batch_axis
+from .._sharding import map_local_shards
 from .._validate import (
     as_float_array,
     check_coordinates,
@@ -161,7 +162,15 @@ def shrinkwrap_points(
     if points.shape[-2] == 0:
         return points
     gate = None if max_distance is None else jnp.asarray(max_distance, dtype)
-    return _shrinkwrap(points, target_points, faces, valid, offset, point_weights, gate, bvh, backend=backend, batched=batched)
+
+    def local(points, target_points, faces, valid, offset, point_weights, gate):
+        return _shrinkwrap(points, target_points, faces, valid, offset, point_weights, gate, bvh, backend=backend, batched=batched)
+
+    # Points are independent: sharded points (and their weights) are projected shard by shard
+    # onto the whole target (the Warp search's sort refuses a sharded axis).
+    lead = points.ndim - 1
+    arrays = (points, target_points, faces, valid, offset, point_weights, gate)
+    return map_local_shards(local, arrays, (lead, 0, 0, 0, 0, lead, 0), out_axes=lead)
 
 
 @functools.partial(jax.jit, static_argnames=("backend", "batched"))

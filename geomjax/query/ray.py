@@ -12,6 +12,7 @@ from .._blocking import map_query_blocks, query_block_size
 from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors
 from .._geometry import ray_plane_intersection, ray_triangle_intersection, triangle_normal
+from .._sharding import map_local_shards
 from .._validate import as_float32, as_float_array, check_bool, check_real_scalar, check_same_shape
 from .bvh import MeshBVH, _extent, build_bvh, bvh_vertices32, checked_live_handle, checked_mesh, finite_vertices, queries_in_working_dtype, replayed
 
@@ -123,18 +124,25 @@ def ray_mesh_intersect(
         warp_mesh = build_bvh(mesh_vertices, mesh_indices)
     index_dtype = jnp.int64 if jnp.dtype(mesh_indices.dtype) == jnp.int64 else jnp.int32
 
-    shape = origins.shape[:-1]
     handle = warp_mesh.mesh_words if warp_mesh is not None else None
-    hit, distance, points, hit_faces, normals = _intersect(
-        vertices, faces, origins.reshape(-1, 3), directions.reshape(-1, 3), handle, max_distance=max_distance, backend=backend
-    )
-    result = (
-        hit.reshape(shape),
-        distance.reshape(shape).astype(output_dtype),
-        points.reshape(shape + (3,)).astype(output_dtype),
-        hit_faces.astype(index_dtype).reshape(shape),
-        normals.reshape(shape + (3,)).astype(output_dtype),
-    )
+
+    def local(vertices, faces, origins, directions, handle):
+        shape = origins.shape[:-1]
+        hit, distance, points, hit_faces, normals = _intersect(
+            vertices, faces, origins.reshape(-1, 3), directions.reshape(-1, 3), handle, max_distance=max_distance, backend=backend
+        )
+        return (
+            hit.reshape(shape),
+            distance.reshape(shape).astype(output_dtype),
+            points.reshape(shape + (3,)).astype(output_dtype),
+            hit_faces.astype(index_dtype).reshape(shape),
+            normals.reshape(shape + (3,)).astype(output_dtype),
+        )
+
+    # Rays are independent: sharded rays are cast shard by shard against the whole mesh (an
+    # opaque Warp call left to XLA's partitioner gave wrong rows across processes).
+    axes = origins.ndim - 1
+    result = map_local_shards(local, (vertices, faces, origins, directions, handle), (0, 0, axes, axes, 0), out_axes=axes)
     return (*result, warp_mesh) if return_warp_mesh else result
 
 
