@@ -254,17 +254,22 @@ for _axis_type, _impl, _fns in GRADIENT_CONFIGS:
         case(f"{_fn.__name__.replace('_', '-')}-{_axis_type}-{_impl}")(functools.partial(_fn, _axis_type, _impl))
 
 
-@case("design-sobolev-Explicit-warp")
-def _():
-    # Values only (its gradient compiles slowly; checked by hand when this was written).
+def sobolev_design_batch(implementation: str):
+    """``(smooth, (points, displacement))``: a batch of sphere designs and their Sobolev smoothing."""
     sphere = g.icosphere(1, dtype="float64")
     points = jnp.broadcast_to(sphere.points, (NUM_DESIGNS, *sphere.points.shape))
     displacement = rng_array(10, points.shape, "float64", 0.01)
 
-    def deform(p, d):
-        return g.sobolev_deform_points(p, sphere.cells, d, length_scale=0.3, implementation="warp")
+    def smooth(p, d):
+        return g.sobolev_deform_points(p, sphere.cells, d, length_scale=0.3, implementation=implementation)
 
-    args = (points, displacement)
+    return smooth, (points, displacement)
+
+
+@case("design-sobolev-Explicit-warp")
+def _():
+    # Values only (its gradient compiles slowly; checked by hand when this was written).
+    deform, args = sobolev_design_batch("warp")
     check(deform, args, [shard(a, "Explicit", 0) for a in args], "float64", keep_axis=0)
 
 
@@ -272,12 +277,10 @@ def _():
 def _():
     # The JAX path runs with the split axis turned Auto (a lax.map over designs and lineax's
     # structure checks refuse per-shard types): values and gradients.
-    sphere = g.icosphere(1, dtype="float64")
-    points = jnp.broadcast_to(sphere.points, (NUM_DESIGNS, *sphere.points.shape))
-    displacement = rng_array(10, points.shape, "float64", 0.01)
+    smooth, (points, displacement) = sobolev_design_batch("jax")
 
     def objective(p, d):
-        return jnp.sum(jnp.sin(g.sobolev_deform_points(p, sphere.cells, d, length_scale=0.3, implementation="jax")))
+        return jnp.sum(jnp.sin(smooth(p, d)))
 
     fn = jax.value_and_grad(objective, argnums=(0, 1))
     expected = jax.jit(fn)(points, displacement)
