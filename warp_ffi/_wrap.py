@@ -124,7 +124,11 @@ def _finish_pending_calls() -> None:
         pass
 
 
-atexit.register(_finish_pending_calls)
+@functools.cache
+def _finish_pending_calls_at_exit() -> None:
+    """Registers :func:`_finish_pending_calls` once, when the first Warp call is made: a process
+    that never calls one does not start JAX's backend at exit."""
+    atexit.register(_finish_pending_calls)
 
 
 @functools.cache
@@ -191,6 +195,7 @@ class _PerVariant:
     def __call__(self, dtype, *params):
         key = (jnp.dtype(dtype), *params)
         if key not in self._made:
+            _finish_pending_calls_at_exit()
             self._made[key] = self._make(*key)
         return self._made[key]
 
