@@ -289,6 +289,25 @@ def _():
     assert sharded_axis(actual[1][0], 0) and sharded_axis(actual[1][1], 0), actual[1][0].sharding.spec
 
 
+@case("query-rays-and-shrinkwrap-Explicit")
+def _():
+    # Split rays and points against a replicated mesh, both backends; every output keeps the split
+    # (the miss encoding's inf distances compare equal in place).
+    sphere = g.icosphere(2, dtype="float64")
+    origins = rng_array(11, (32, 3), "float64", 1.2)
+    directions = -origins / jnp.linalg.norm(origins, axis=1, keepdims=True)
+    for impl in ("jax", "warp"):
+
+        def rays(o, d, impl=impl):
+            return g.ray_mesh_intersect(sphere.points, sphere.cells, o, d, implementation=impl)
+
+        def wrap(p, impl=impl):
+            return g.shrinkwrap_points(p, sphere.points, sphere.cells, implementation=impl)
+
+        check(rays, (origins, directions), [shard(a, "Explicit", 0) for a in (origins, directions)], "float64", keep_axis=0)
+        check(wrap, (origins,), [shard(origins, "Explicit", 0)], "float64", keep_axis=0)
+
+
 @case("design-and-query-morph-Explicit")
 def _():
     # A 2 x 2 mesh splitting designs and points at once; the controls (split over designs only)
