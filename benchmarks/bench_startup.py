@@ -86,14 +86,14 @@ def _run_child(name: str, cache: str) -> dict:
 
 def readme_blocks() -> list[tuple[str, str]]:
     """``(label, code)`` of the README's ``python`` blocks, without the multi-host one."""
-    text = (REPO / "README.md").read_text()
-    blocks, previous = [], ""
-    for part in text.split("```python\n")[1:]:
+    chunks = (REPO / "README.md").read_text().split("```python\n")
+    blocks = []
+    for before, part in zip(chunks, chunks[1:]):  # each block with the text just before it
+        if before.rstrip().endswith("<!-- multihost-code -->"):
+            continue
         code = part.split("```", 1)[0]
-        if "<!-- multihost-code -->" not in previous[-200:]:
-            first = next(line for line in code.splitlines() if line.strip() and not line.startswith(("import", "from")))
-            blocks.append((f"README block: {first.strip()[:48].rstrip()}", code))
-        previous = part
+        first = next(line for line in code.splitlines() if line.strip() and not line.startswith(("import", "from")))
+        blocks.append((f"README block: {first.strip()[:48].rstrip()}", code))
     return blocks
 
 
