@@ -193,12 +193,43 @@ def code_for(message: str, error: type[Exception]) -> int:
 # ---------------------------------------------------------------------------------------------
 
 
-@jax.custom_jvp
-def _check(codes, *leaves):
+def _failing_call(codes, *leaves):
     _register()
     aliases = {1 + i: i for i in range(len(leaves))}
-    call = jax.ffi.ffi_call(_TARGET, [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves], input_output_aliases=aliases, vmap_method="broadcast_all")
+    # The outputs keep the inputs' shardings: under Explicit mesh axes a result typed as
+    # replicated would not match the unchecked branch of the cond below (or a shard_map's specs).
+    results = [jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=_explicit_sharding(x)) for x in leaves]
+    call = jax.ffi.ffi_call(_TARGET, results, input_output_aliases=aliases, vmap_method="broadcast_all")
     return tuple(call(codes, *leaves))
+
+
+def _explicit_sharding(x):
+    """``x``'s sharding when its type carries one (Explicit mesh axes), else ``None``."""
+    sharding = getattr(jax.typeof(x), "sharding", None)
+    if sharding is None or not any(entry is not None for entry in getattr(sharding, "spec", ())):
+        return None
+    return sharding
+
+
+@jax.custom_batching.custom_vmap
+def _checked_values(codes, *leaves):
+    # The handler (a Python call through ctypes, taking the GIL) runs only when a check failed.
+    return jax.lax.cond(jnp.any(codes >= 0), lambda: _failing_call(codes, *leaves), lambda: leaves)
+
+
+@_checked_values.def_vmap
+def _checked_values_vmap(axis_size, in_batched, codes, *leaves):
+    # A batch is checked as one: any failed element fails the program. Run on the whole batched
+    # arrays rather than through vmap's rules, which would turn the cond into a select between
+    # the FFI call's outputs, typed as replicated along the batch axis, and the leaves, which a
+    # split batch types as split (a sharding mismatch under Explicit axes).
+    del axis_size
+    return _checked_values(codes, *leaves), tuple(in_batched[1:])
+
+
+@jax.custom_jvp
+def _check(codes, *leaves):
+    return _checked_values(codes, *leaves)
 
 
 @_check.defjvp
@@ -212,6 +243,4 @@ def checked(leaves: Sequence[jax.Array], codes) -> tuple[jax.Array, ...]:
     :func:`code_for` code rather than ``-1``."""
     codes = jnp.asarray(codes, jnp.int32)
     leaves = tuple(jnp.asarray(x) for x in leaves)
-    # The handler (a Python call through ctypes, taking the GIL) runs only when a check failed;
-    # under vmap the branch becomes a select and it runs for every batch, which is still right.
-    return jax.lax.cond(jnp.any(codes >= 0), lambda: _check(codes, *leaves), lambda: leaves)
+    return _check(codes, *leaves)

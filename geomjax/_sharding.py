@@ -18,6 +18,7 @@ stay local, Warp calls see gathered inputs).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 
 import jax
@@ -132,3 +133,48 @@ def on_auto_axes(fn: Callable, x, *args):
         return fn(x, *args)
     out_sharding = jax.typeof(x).sharding
     return jax.sharding.auto_axes(fn, out_sharding=out_sharding)(x, *args)
+
+
+# ---------------------------------------------------------------------------------------------
+# The eager host-side ops (remeshing, sampling): one process's arrays, on one device.
+
+
+def on_one_device(op_name: str, name: str, x):
+    """``x`` on one of this process's devices, for an op that reads it on this host.
+
+    A replicated array (over this process's devices, or over every process's: a multi-host
+    ``jax.make_array_from_process_local_data``) is its first local shard; one split over this
+    process's devices is gathered onto its first. One split across processes raises
+    ``ValueError``: it cannot be fetched whole, these ops run on one host, and gathering it would
+    be a collective that every process must join.
+    """
+    if not isinstance(x, jax.Array) or isinstance(x, jax.core.Tracer) or len(x.sharding.device_set) == 1:
+        return x
+    if x.is_fully_replicated:
+        return x.addressable_shards[0].data
+    if not x.is_fully_addressable:
+        raise ValueError(
+            f"{op_name}: {name} is split across processes, and this op runs on one host: give every process "
+            "the whole array (replicated, or a process-local array)"
+        )
+    return jax.device_put(x, x.addressable_shards[0].device)
+
+
+def outside_context_mesh(function: Callable) -> Callable:
+    """Decorator for the eager host-side ops: runs ``function`` without the mesh that
+    ``jax.set_mesh`` put in context. Their jitted steps run on the input's one device, which jit
+    rejects under a context mesh over other devices; inside a trace (where ``jax.set_mesh`` is not
+    allowed) the op is left to raise its own error."""
+
+    @functools.wraps(function)
+    def wrapper(*args, **kwargs):
+        if jax.sharding.get_abstract_mesh().empty:
+            return function(*args, **kwargs)
+        try:
+            without_mesh = jax.set_mesh(None)
+        except ValueError:  # inside jit: not ours to change
+            return function(*args, **kwargs)
+        with without_mesh:
+            return function(*args, **kwargs)
+
+    return wrapper

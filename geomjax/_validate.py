@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._errors import runtime_check
+from ._sharding import on_one_device
 
 FLOAT_DTYPES = (jnp.dtype(jnp.float32), jnp.dtype(jnp.float64))
 INDEX_DTYPES = (jnp.dtype(jnp.int32), jnp.dtype(jnp.int64))
@@ -290,6 +291,8 @@ def check_host_surface(op_name: str, mesh_vertices, mesh_indices, *, min_vertice
     vertices = as_float_array("mesh_vertices", mesh_vertices)
     if isinstance(vertices, jax.core.Tracer) or isinstance(mesh_indices, jax.core.Tracer):
         raise TypeError(f"{op_name} runs eagerly (its output size depends on the data): call it outside jax.jit")
+    vertices = on_one_device(op_name, "mesh_vertices", vertices)
+    mesh_indices = on_one_device(op_name, "mesh_indices", mesh_indices)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] < min_vertices:
         raise ValueError(f"mesh_vertices must have shape (V, 3) with V >= {min_vertices}, got {tuple(vertices.shape)}")
     if not is_array(mesh_indices):
@@ -332,6 +335,7 @@ def check_host_vertex_field(op_name: str, name: str, value, vertices: jax.Array)
     field = as_float_array(name, as_float32(value, narrower_only=True))
     if isinstance(field, jax.core.Tracer):
         raise TypeError(f"{op_name} runs eagerly: {name} must be concrete")
+    field = on_one_device(op_name, name, field)
     check_same_device("mesh_vertices", vertices, name, field)
     if field.shape != (vertices.shape[0],):
         raise ValueError(f"{name} must have shape ({vertices.shape[0]},), got {tuple(field.shape)}")

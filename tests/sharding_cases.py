@@ -351,6 +351,41 @@ def _():
     check(fn, (points,), (replicated,), "float64", keep_axis=None)
 
 
+@case("design-fps-and-voxels-Explicit")
+def _():
+    # A split batch of clouds and of meshes: farthest-point sampling (its own batch axis, jitted
+    # and eager; indices exactly equal) and the JAX voxel fractions under vmap (whose run-time
+    # checks, a cond on the batch, must keep the split).
+    sphere = g.icosphere(1, dtype="float64")
+    designs = sphere.points + rng_array(12, (NUM_DESIGNS, *sphere.points.shape), "float64", 0.05)
+    split = shard(designs, "Explicit", 0)
+    expected = g.farthest_point_sampling(designs, 12)
+    for call in (jax.jit(lambda x: g.farthest_point_sampling(x, 12)), lambda x: g.farthest_point_sampling(x, 12)):
+        np.testing.assert_array_equal(call(split), expected)
+
+    def voxels(x):
+        return g.mesh_to_voxel_fraction(x, sphere.cells, [-1.2] * 3, 0.3, (8, 8, 8), n_samples=8, implementation="jax")
+
+    check(jax.vmap(voxels), (designs,), (split,), "float64", keep_axis=0)
+
+
+@case("host-ops-under-set_mesh")
+def _():
+    # Remeshing and sampling run on one device; under jax.set_mesh (as the README's multi-host
+    # code runs) and on replicated arrays they give the plain call's result.
+    sphere = g.icosphere(2, dtype="float64")
+    replicated = [jax.device_put(a, NamedSharding(mesh("Explicit"), P())) for a in (sphere.points, sphere.cells)]
+    for impl in ("jax", "warp"):
+        expected = (
+            g.remeshing(sphere.points, sphere.cells, 60, implementation=impl),
+            g.mesh_poisson_disk_sample(sphere.points, sphere.cells, 0.3, implementation=impl),
+        )
+        with jax.set_mesh(mesh("Explicit")):
+            actual = (g.remeshing(*replicated, 60, implementation=impl), g.mesh_poisson_disk_sample(*replicated, 0.3, implementation=impl))
+        for a, e in zip(jax.tree.leaves(actual), jax.tree.leaves(expected), strict=True):
+            np.testing.assert_array_equal(a, e)
+
+
 def main(path: str) -> None:
     jax.config.update("jax_enable_x64", True)
     jax.config.update("jax_numpy_dtype_promotion", "strict")

@@ -18,6 +18,7 @@ from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors
 from .._hash_grid import table_dims
 from .._projection import SurfaceProjector
+from .._sharding import outside_context_mesh
 from .._validate import check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
 from ..sample.farthest import farthest_point_sampling
 from ._quadrics import ClusterQuadrics
@@ -121,7 +122,7 @@ def remeshing(
        vertices (an empty cluster keeps its position). Then (not in the reference) the
        clusters become regions of the surface: 2 more Lloyd rounds in which each vertex joins
        the cluster whose seed (the member closest to its centroid) is nearest along the mesh's
-       edges (Dijkstra), so no cluster reaches across a thin part or a narrow gap; and up to 4
+       edges (Dijkstra), so no cluster reaches across a thin part or a narrow gap; and up to 12
        rounds that mend the layouts whose relabelled triangles would not be a surface (a
        cluster squeezed between two others gives up its seed; two clusters meeting along two
        arcs get one of them split, the smallest other cluster giving up its seed).
@@ -198,7 +199,9 @@ def remeshing(
             runs eagerly: call it outside ``jit``).
         ValueError: bad shapes, ``V < 3``, ``K`` outside ``[3, V]``, indices out of range,
             non-finite vertices, a non-positive or non-finite density, out-of-range options, a
-            zero-area surface.
+            zero-area surface, an input split across processes (a multi-host array: this runs
+            on one host; replicated arrays and arrays on several local devices are read from
+            one device, also under ``jax.set_mesh``).
         RuntimeError: no triangle survives the topology step.
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
@@ -230,6 +233,7 @@ def remeshing(
     return result.vertices, result.faces
 
 
+@outside_context_mesh
 def remesh_with_sources(
     mesh_vertices: Float[Array, "num_vertices 3"],
     # Host indices too: Mesh.remesh passes its validated NumPy cells (no device round trip).

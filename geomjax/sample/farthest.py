@@ -13,6 +13,7 @@ from jaxtyping import Array, Float, Int
 from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors, runtime_check
 from .._points import add_batch_axis, remove_batch_axis
+from .._sharding import map_local_shards
 from .._validate import as_float32, check_coordinates, check_integer, is_array
 
 __all__ = ["farthest_point_sampling"]
@@ -95,7 +96,9 @@ def farthest_point_sampling(
     start = _start_indices(random_start, start_index, x.shape[0], num_points, batched, check_range=num_samples > 0)
     if num_samples == 0:
         return remove_batch_axis(jnp.zeros(x.shape[:1] + (0,), jnp.int32), batched)
-    return remove_batch_axis(_farthest_points(x, num_samples, start), batched)
+    # A split batch of clouds runs shard by shard (each cloud's loop is its own).
+    chosen = map_local_shards(lambda x, start: _farthest_points(x, num_samples, start), (x, start), (1, 1), out_axes=1)
+    return remove_batch_axis(chosen, batched)
 
 
 def _start_indices(random_start, start_index, num_clouds: int, num_points: int, batched: bool, *, check_range: bool) -> jax.Array:

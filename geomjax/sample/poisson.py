@@ -19,6 +19,7 @@ from .._errors import raises_documented_errors
 from .._hash_grid import cell_order, check_cell_range, grid_resolution, table_dims
 from .._hashing import lowbias32
 from .._projection import SurfaceProjector
+from .._sharding import outside_context_mesh
 from .._validate import check_allocatable, check_choice, check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
 
 __all__ = ["mesh_poisson_disk_sample"]
@@ -51,6 +52,7 @@ RELAXATION_LIMIT = 0.25  # largest move per step, in r_max
 
 
 @raises_documented_errors
+@outside_context_mesh
 def mesh_poisson_disk_sample(
     mesh_vertices: Float[Array, "num_vertices 3"],
     mesh_indices: Int[Array, "num_faces 3"] | Int[Array, " num_indices"],
@@ -145,7 +147,9 @@ def mesh_poisson_disk_sample(
             radius too small for the coordinate range (more than ``2**30`` grid cells), or a
             ``batch_size`` (dart throwing) or ``target_num_points`` (elimination, whose pool
             holds 5x as many candidates) beyond ``2**31 - 1`` candidates or the memory the
-            device has left (checked before anything is allocated).
+            device has left (checked before anything is allocated), an input split across
+            processes (a multi-host array: this runs on one host; replicated arrays and arrays
+            on several local devices are read from one device, also under ``jax.set_mesh``).
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
 
