@@ -37,17 +37,72 @@ def _local_part(array, lo: int, hi: int):
     return rows[: hi - lo]
 
 
-def per_process_mesh_summary(gj, index: int) -> list[float]:
-    """Remeshing and Poisson sampling of mesh ``index`` (a sphere stretched by ``index``): sizes
-    and coordinate sums, to compare a multi-process run with the same calls in one process."""
+def per_process_mesh_summary(gj, index: int, as_array=lambda a: a) -> list[float]:
+    """Remeshing and Poisson sampling of mesh ``index`` (a sphere stretched by ``index``; its
+    vertices and triangles passed through ``as_array``): sizes and coordinate sums, to compare a
+    multi-process run with the same calls in one process."""
     import numpy as np
 
     sphere = gj.icosphere(3)
-    points = np.asarray(sphere.points) * np.array([1.0 + 0.5 * index, 1.0, 1.0])
-    vertices, triangles = gj.remeshing(points, np.asarray(sphere.cells), 200)
-    samples = gj.mesh_poisson_disk_sample(points, np.asarray(sphere.cells), min_distance=0.2)
+    points = as_array(np.asarray(sphere.points) * np.array([1.0 + 0.5 * index, 1.0, 1.0]))
+    cells = as_array(np.asarray(sphere.cells))
+    vertices, triangles = gj.remeshing(points, cells, 200)
+    samples = gj.mesh_poisson_disk_sample(points, cells, min_distance=0.2)
     return [float(vertices.shape[0]), float(triangles.shape[0]), float(samples.shape[0]), float(np.abs(np.asarray(vertices, np.float64)).sum()),
             float(np.abs(np.asarray(samples, np.float64)).sum())]  # fmt: skip
+
+
+def _energy_calls(gj, implementation: str, rng, num_designs: int) -> list:
+    """The six energies per design and cell: ``(fn, batch arrays)`` pairs."""
+    import numpy as np
+
+    box, sphere = gj.tetrahedralized_box(2, 2, 2), gj.icosphere(1)
+    calls = []
+    for rest, topology, energies in (
+        (box.points, box.cells, (gj.simplex_strain_energy, gj.simplex_measure_energy, gj.total_measure_energy, gj.simplex_inversion_energy)),
+        (sphere.points, sphere.hinges, (gj.surface_bending_energy,)),
+        (sphere.points, sphere.cells, (gj.closed_surface_volume_energy,)),
+    ):
+        rest = np.asarray(rest)
+        designs = rest + rng.normal(0, 0.03, (num_designs, *rest.shape))
+        references = np.broadcast_to(rest, designs.shape).copy()
+        for energy in energies:
+
+            def per_cell(x, r, energy=energy, topology=topology):
+                return energy(x, r, topology, reduction="none", implementation=implementation)
+
+            calls.append((per_cell, (designs, references)))
+    return calls
+
+
+def _batch_op_calls(gj, implementation: str, rng, num_designs: int) -> list:
+    """Morphing, displacement, farthest-point sampling and (vmapped) voxel fractions of a batch
+    of sphere designs: ``(fn, batch arrays)`` pairs (the ops each backend has)."""
+    import jax
+    import numpy as np
+
+    sphere = gj.icosphere(1)
+    rest = np.asarray(sphere.points)
+    designs = rest + rng.normal(0, 0.03, (num_designs, *rest.shape))
+    controls = np.broadcast_to(rest[::4], (num_designs, *rest[::4].shape)).copy()
+    moves = rng.normal(0, 0.05, controls.shape)
+
+    def morph(x, c, d):
+        return gj.morph_points(x, c, d, radius=0.6, implementation=implementation)
+
+    calls = [(morph, (designs, controls, moves))]
+    if implementation == "jax":  # the ops without a Warp kernel on CPU, and JAX's voxels
+        # (vmap over a split axis does not reach Warp's FFI calls: their sequential batching
+        # is a scan, which JAX refuses over a split axis)
+        def voxels(x):
+            return gj.mesh_to_voxel_fraction(x, sphere.cells, [-1.2] * 3, 0.3, (8, 8, 8), n_samples=8, implementation="jax")
+
+        calls += [
+            (lambda x, d: gj.displace_points(x, d), (designs, rng.normal(0, 0.01, designs.shape))),
+            (lambda x: gj.farthest_point_sampling(x, 12), (designs,)),
+            (jax.vmap(voxels), (designs,)),
+        ]
+    return calls
 
 
 def main() -> None:
@@ -144,31 +199,25 @@ def main() -> None:
             value, gradient = value.addressable_shards[0].data, gradient.addressable_shards[0].data
             differences += [_relative_difference(value, ref_value), _relative_difference(np.asarray(gradient), ref_gradient)]
         result["max_relative_difference"] = max(differences)
-    elif case == "energies-warp":
-        # A split batch of designs: each process holds some designs (and their reference
-        # shapes); the six energies per design and cell, on the Warp backend.
-        box, sphere = gj.tetrahedralized_box(2, 2, 2), gj.icosphere(1)
+    elif case.startswith(("energies", "batch-ops")):
+        # A split batch of designs: each process holds some designs (and their reference shapes
+        # and controls); every op jitted and eagerly (an eager op must not read other processes'
+        # rows), against the same call on this process's devices alone.
+        implementation = case.split("-")[-1]
         num_designs = 2 * jax.device_count()
         lo, hi = _local_rows(split, (num_designs,))
+        calls = _batch_op_calls(gj, implementation, rng, num_designs) if case.startswith("batch-ops") else _energy_calls(gj, implementation, rng, num_designs)
         differences = []
-        for rest, topology, energies in (
-            (box.points, box.cells, (gj.simplex_strain_energy, gj.simplex_measure_energy, gj.total_measure_energy, gj.simplex_inversion_energy)),
-            (sphere.points, sphere.hinges, (gj.surface_bending_energy,)),
-            (sphere.points, sphere.cells, (gj.closed_surface_volume_energy,)),
-        ):
-            rest = np.asarray(rest)
-            designs = rest + rng.normal(0, 0.03, (num_designs, *rest.shape))
-            references = np.broadcast_to(rest, designs.shape).copy()
-            global_designs = jax.make_array_from_process_local_data(split, designs[lo:hi], designs.shape)
-            global_references = jax.make_array_from_process_local_data(split, references[lo:hi], references.shape)
-            for energy in energies:
-
-                def per_cell(x, r, energy=energy, topology=topology):
-                    return energy(x, r, topology, reduction="none", implementation="warp")
-
-                split_value = _local_part(jax.jit(per_cell)(global_designs, global_references), lo, hi)
-                reference = np.asarray(per_cell(jax.device_put(designs, local_device), jax.device_put(references, local_device)))[lo:hi]
-                differences.append(_relative_difference(split_value, reference))
+        for fn, batch in calls:
+            global_batch = [jax.make_array_from_process_local_data(split, a[lo:hi], a.shape) for a in batch]
+            reference = np.asarray(fn(*(jax.device_put(a, local_device) for a in batch)))[lo:hi]
+            for call in (jax.jit(fn), fn):
+                with jax.set_mesh(mesh):
+                    value = _local_part(call(*global_batch), lo, hi)
+                if np.issubdtype(reference.dtype, np.integer):  # sample indices: exactly equal
+                    differences.append(0.0 if np.array_equal(value, reference) else float("inf"))
+                else:
+                    differences.append(_relative_difference(value, reference))
         result["rows"] = [lo, hi]
         result["max_relative_difference"] = max(differences)
     elif case.startswith("sobolev"):
@@ -196,6 +245,25 @@ def main() -> None:
         # data-dependent ops must use this process's devices only.
         result["rows"] = [process_id, process_id + 1]
         result["summary"] = per_process_mesh_summary(gj, process_id)
+        result["max_relative_difference"] = 0.0  # compared with one process by the test
+    elif case == "global-meshes":
+        # One mesh as arrays that span every process (replicated: each process holds all of it),
+        # remeshed and sampled with and without the mesh in context; a split vertex array is a
+        # ValueError (these ops run on one host).
+        replicated = NamedSharding(mesh, P())
+
+        def as_global(a):
+            return jax.make_array_from_process_local_data(replicated, a, a.shape)
+
+        result["rows"] = [process_id, process_id + 1]
+        result["summaries"] = [per_process_mesh_summary(gj, 0, as_global)]
+        with jax.set_mesh(mesh):
+            result["summaries"].append(per_process_mesh_summary(gj, 0, as_global))
+        try:
+            gj.remeshing(global_points, np.array([[0, 1, 2]]), 3)
+            result["split_error"] = ""
+        except ValueError as error:
+            result["split_error"] = str(error)
         result["max_relative_difference"] = 0.0  # compared with one process by the test
     else:
         raise SystemExit(f"unknown case {case!r}")

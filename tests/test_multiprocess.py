@@ -6,12 +6,14 @@ port; Gloo collectives on CPU). Every process builds its rows of the global inpu
 ``jax.make_array_from_process_local_data``, runs the op jitted on the global arrays and compares
 its rows with the same computation unsharded (issue 17): SDF on split query points, and FFD and
 RBF on split points with the gradient of their replicated lattice or control displacements (a
-cross-process sum), each on both backends; the six energies per design and cell on the Warp
-backend over a split batch of designs; Sobolev smoothing of a split batch of designs, eager and
+cross-process sum), each on both backends; the six energies per design and cell over a split
+batch of designs, and morphing of it, on both backends; displacement, farthest-point sampling and
+vmapped voxel fractions of it on the JAX backend; Sobolev smoothing of a split batch of designs, eager and
 jitted, on both backends. ``examples/multiprocess_design_batch.py`` (the README's multi-host
 code, checked to be the same text) runs as 2 x 2 and 4 x 1 processes. Every op on split arrays
 runs jitted and eagerly (an eager op must not read another process's rows); remeshing and
-Poisson sampling run on each process's own mesh and are compared with the same calls here. Processes are bounded in time and always cleaned up.
+Poisson sampling run on each process's own mesh, and on one mesh replicated over every process,
+and are compared with the same calls here. Processes are bounded in time and always cleaned up.
 """
 
 from __future__ import annotations
@@ -73,7 +75,10 @@ CASES = [
     ("ffd-warp", 2, 2),
     ("rbf-jax", 2, 2),
     ("rbf-warp", 2, 2),
+    ("energies-jax", 2, 2),
     ("energies-warp", 2, 2),
+    ("batch-ops-jax", 2, 2),
+    ("batch-ops-warp", 2, 2),
     ("rays-jax", 2, 2),
     ("rays-warp", 2, 2),
     ("shrinkwrap-jax", 2, 2),
@@ -131,3 +136,18 @@ def test_per_process_meshes_match_one_process():
         # Sums of |coordinates| of float32 outputs: the per-thread chunks of a Warp launch may
         # round differently with another number of host devices and threads.
         np.testing.assert_allclose(r["summary"][3:], expected[3:], rtol=64 * np.finfo(np.float32).eps)
+
+
+@pytest.mark.multiprocess
+def test_meshes_spanning_processes_match_one_process():
+    # Remeshing and sampling a mesh held as replicated arrays over every process's devices, with
+    # and without the mesh in context (jax.set_mesh), as the same calls on one process's arrays.
+    import geomjax as gj
+    from tests.multiprocess_worker import per_process_mesh_summary
+
+    expected = per_process_mesh_summary(gj, 0)
+    for r in run_processes("global-meshes", 2, 2):
+        for summary in r["summaries"]:
+            assert summary[:3] == expected[:3]
+            np.testing.assert_allclose(summary[3:], expected[3:], rtol=64 * np.finfo(np.float32).eps)
+        assert r["split_error"].startswith("remeshing: mesh_vertices is split across processes"), r["split_error"]
