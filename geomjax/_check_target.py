@@ -196,19 +196,11 @@ def code_for(message: str, error: type[Exception]) -> int:
 def _failing_call(codes, *leaves):
     _register()
     aliases = {1 + i: i for i in range(len(leaves))}
-    # The outputs keep the inputs' shardings: under Explicit mesh axes a result typed as
-    # replicated would not match the unchecked branch of the cond below (or a shard_map's specs).
-    results = [jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=_explicit_sharding(x)) for x in leaves]
-    call = jax.ffi.ffi_call(_TARGET, results, input_output_aliases=aliases, vmap_method="broadcast_all")
+    # The outputs are typed as the inputs (``jax.typeof``: their sharding under Explicit mesh
+    # axes, and inside shard_map the axes they vary over), so that they match the unchecked
+    # branch of the cond below and the specs of an enclosing shard_map.
+    call = jax.ffi.ffi_call(_TARGET, [jax.typeof(x) for x in leaves], input_output_aliases=aliases, vmap_method="broadcast_all")
     return tuple(call(codes, *leaves))
-
-
-def _explicit_sharding(x):
-    """``x``'s sharding when its type carries one (Explicit mesh axes), else ``None``."""
-    sharding = getattr(jax.typeof(x), "sharding", None)
-    if sharding is None or not any(entry is not None for entry in getattr(sharding, "spec", ())):
-        return None
-    return sharding
 
 
 @jax.custom_batching.custom_vmap

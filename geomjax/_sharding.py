@@ -120,21 +120,6 @@ def map_local_shards(fn: Callable, args: Sequence, shared_axes: Sequence[int], *
     return jax.shard_map(local, mesh=mesh, in_specs=tuple(in_specs), out_specs=spec(out_axes), axis_names=frozenset(used), check_vma=check_vma)(*sharded_args)
 
 
-def on_auto_axes(fn: Callable, x, *args):
-    """``fn(x, *args)`` with any ``Explicit`` mesh axes of the inputs turned ``Auto`` inside.
-
-    For computations that the sharding-in-types rules reject on a split axis (a ``lax.map`` over
-    designs, lineax's structure checks under ``shard_map``): XLA's partitioner then places them,
-    as under an ``Auto`` mesh, and the result comes back with ``x``'s sharding.
-    """
-    arrays = [a for a in (x, *args) if a is not None]
-    mesh = _mesh_of(arrays)
-    if mesh is None:
-        return fn(x, *args)
-    out_sharding = jax.typeof(x).sharding
-    return jax.sharding.auto_axes(fn, out_sharding=out_sharding)(x, *args)
-
-
 # ---------------------------------------------------------------------------------------------
 # The eager host-side ops (remeshing, sampling): one process's arrays, on one device.
 

@@ -15,7 +15,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .._dispatch import platform_of, select_implementation
 from .._errors import raises_documented_errors, runtime_check
 from .._points import add_batch_axis, remove_batch_axis
-from .._sharding import map_local_shards, on_auto_axes
+from .._sharding import map_local_shards
 from .._validate import (
     as_index_array,
     check_coordinates,
@@ -256,13 +256,11 @@ def deform_with_topology(points, cells, displacement, *, length_scale, fixed_poi
         check_indices=not concrete_cells,
         field_only=field_only,
     )
-    # Designs are solved independently: explicitly split ones shard by shard (see _sharding).
-    # The runtime checks need check_vma off, which is safe as only the integer cells and
-    # non-differentiated constants are replicated.
-    if backend.is_warp:
-        out = map_local_shards(deform, (x, cells, d, free), (1, 0, 1, 1), out_axes=1, check_vma=False)
-    else:
-        out = on_auto_axes(deform, x, cells, d, free)
+    # Designs are solved independently: explicitly split ones shard by shard (see _sharding),
+    # on both backends. The runtime checks need check_vma off (equinox's error_if, traced for
+    # the non-CPU platforms, does not type its branches' varying axes), which is safe as only the
+    # integer cells and non-differentiated constants are replicated.
+    out = map_local_shards(deform, (x, cells, d, free), (1, 0, 1, 1), out_axes=1, check_vma=False)
     return remove_batch_axis(out, batched)
 
 

@@ -68,5 +68,11 @@ class HelmholtzOperator(eqx.Module):
         return 1 / jnp.maximum(diagonal, jnp.finfo(diagonal.dtype).tiny)
 
     def as_linear_operator(self, structure: jax.ShapeDtypeStruct) -> lx.FunctionLinearOperator:
-        """The operator for ``lineax.linear_solve``, tagged symmetric positive semidefinite."""
-        return lx.FunctionLinearOperator(self.mv, structure, tags=(lx.symmetric_tag, lx.positive_semidefinite_tag))
+        """The operator for ``lineax.linear_solve``, tagged symmetric positive semidefinite.
+
+        ``self.mv`` is a bound method of this module, a pytree of its arrays already, so lineax
+        need not closure-convert it; its conversion would also compare every vector's type with
+        ``structure``'s, which fails inside ``shard_map`` (the solve's own output, fed back in its
+        derivative, is typed without the per-shard mesh).
+        """
+        return lx.FunctionLinearOperator(self.mv, structure, tags=(lx.symmetric_tag, lx.positive_semidefinite_tag), closure_convert=False)
