@@ -6,6 +6,7 @@ import functools
 import inspect
 import math
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import jax
@@ -291,6 +292,9 @@ def remesh_with_sources(
     backend = select_implementation(_NAME, options["implementation"], platform=platform_of(vertices)).name
     device = next(iter(vertices.devices()))
     host = np.asarray(vertices)
+    # Step 4's search tree (Warp kernels, which run outside the GIL) is built on another thread
+    # while the host work of steps 1 to 3 runs.
+    projector = _background().submit(SurfaceProjector, vertices, faces, backend, _NAME)
 
     # 1. Normalised frame, areas and integration masses.
     low, high = host.min(axis=0), host.max(axis=0)
@@ -336,7 +340,7 @@ def remesh_with_sources(
     else:
         centroids, labels = _lloyd_jax(jax.device_put(x, device), jax.device_put(mass.astype(dtype), device), jax.device_put(centroids, device), max_iterations)
     index_dtype = jnp.int64 if np.dtype(mesh_indices.dtype) == np.int64 else jnp.int32
-    project = SurfaceProjector(vertices, faces, backend, _NAME)
+    project = projector.result()
     if reference:
         # 4. and 5. as the reference: projected centroids and their relabelled triangles.
         positions, source_faces, barycentric = project((centroids * scale + centre).astype(dtype))
@@ -380,6 +384,11 @@ def remesh_with_sources(
         triangles = _surviving(triangles, positions, "relaxation")
     _warn_if_topology_changed(edges, triangles, n_clusters)
     return _result(positions, triangles, source_faces, barycentric, index_dtype, device)
+
+
+@functools.cache
+def _background() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="geomjax-remesh")
 
 
 def _surviving(triangles: np.ndarray, positions: np.ndarray, step: str) -> np.ndarray:
