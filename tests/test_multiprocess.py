@@ -75,8 +75,6 @@ CASES = [
     ("ffd-warp", 2, 2),
     ("rbf-jax", 2, 2),
     ("rbf-warp", 2, 2),
-    ("energies-jax", 2, 2),
-    ("energies-warp", 2, 2),
     ("batch-ops-jax", 2, 2),
     ("batch-ops-warp", 2, 2),
     ("rays-jax", 2, 2),
