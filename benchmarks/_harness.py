@@ -40,6 +40,19 @@ def best_time(fn, *, repeat: int = 3, warmup: int = 1) -> float:
     return min(times)
 
 
+def best_times_interleaved(fns: dict, *, repeat: int = 3) -> dict:
+    """Best wall time (seconds) of each ``fns[name]()`` over ``repeat`` rounds, each round running
+    every function once in turn: a slow spell of a shared machine then hits all of them alike,
+    and the ratios between them hold better than with one function's runs after another's."""
+    times: dict = {name: [] for name in fns}
+    for _ in range(repeat):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            block(fn())
+            times[name].append(time.perf_counter() - start)
+    return {name: min(values) for name, values in times.items()}
+
+
 def peak_rss_bytes_of(code: str) -> int:
     """Run ``code`` in a fresh Python process and return its peak resident memory in bytes.
 
@@ -53,9 +66,7 @@ def peak_rss_bytes_of(code: str) -> int:
     return kb * 1024
 
 
-_PRINT_PEAK = (
-    "print('PEAK_RSS_KB', next(l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM:')))"
-)
+_PRINT_PEAK = "print('PEAK_RSS_KB', next(l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM:')))"
 
 
 def self_peak_rss_bytes() -> int:
