@@ -257,10 +257,12 @@ def row_terms(points: jax.Array, reference_points: jax.Array, topology: jax.Arra
     if shape[0] * shape[1] == 0 or points.shape[1] == 0:
         filled = jnp.zeros(shape, points.dtype) if shape[0] * shape[1] == 0 else nan_terms(shape, points.dtype)
         return filled if num_outputs == 1 else (filled,) * num_outputs
+    # Explicitly sharded designs are computed shard by shard (see _sharding), on both backends:
+    # Warp's kernels need it, and the JAX terms' gradient scatters into an unsharded operand
+    # otherwise, which JAX 0.12 refuses ("Use .at[...].add(out_sharding=)").
     if backend.is_warp:
-        # Per design: explicitly sharded designs are computed shard by shard (see _sharding).
         return map_local_shards(lambda p, r, t: backend.run(warp_terms, jax_terms, p, r, t), (points, reference_points, topology), (1, 1, 0), out_axes=1)
-    return jax_terms(points, reference_points, topology)
+    return map_local_shards(jax_terms, (points, reference_points, topology), (1, 1, 0), out_axes=1)
 
 
 def _warp_simplex_measures(points, reference_points, cells):

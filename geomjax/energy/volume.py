@@ -116,13 +116,16 @@ def enclosed_volumes(points: jax.Array, reference_points: jax.Array, triangles: 
     """Signed volumes ``(B,)`` enclosed by ``(F, 3)`` faces on ``(B, N, 3)`` current and rest points
     (``N > 0``); NaN when a face is invalid."""
     first = jnp.clip(triangles[0, 0], 0, points.shape[1] - 1)
-    origins = jax.lax.stop_gradient(jnp.stack([points[:, first], reference_points[:, first]], axis=1))
+    origin, reference_origin = jax.lax.stop_gradient((points[:, first], reference_points[:, first]))
     if backend.is_warp:
         from warp_ffi.volume import face_volumes as warp_face_volumes
 
+        origins = jnp.stack([origin, reference_origin], axis=1)
         volumes = backend.run(warp_face_volumes, _face_volume_pair, points, reference_points, triangles, origins)
     else:
-        volumes = _face_volume_pair(points, reference_points, triangles, origins)
+        # Not stacked: under a vmap over a split axis with unbatched rest points, JAX 0.12 cannot
+        # type the stack of a split and an unsplit array.
+        volumes = face_volumes(points, triangles, origin), face_volumes(reference_points, triangles, reference_origin)
     return jnp.sum(volumes[0], axis=-1), jnp.sum(volumes[1], axis=-1)
 
 
