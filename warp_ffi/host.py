@@ -10,7 +10,8 @@ JAX calls then reuse:
   ``mesh_words``), :func:`refit_mesh`; ``warp_ffi._grid.build_mesh`` builds the ``wp.Mesh``.
 * Poisson-disk sampling (``warp_ffi.poisson`` re-exports these): :func:`reject_near_accepted`,
   :func:`resolve_conflicts`, :func:`neighbour_lists` and :func:`eliminate`.
-* The clustering remesher's :func:`nearest_centroids` (re-exported by ``warp_ffi.remesh``).
+* The clustering remesher's :func:`nearest_centroids`, and :class:`PatchSearch` with
+  :func:`patch_closest_faces` (re-exported by ``warp_ffi.remesh``).
 
 Inputs arrive validated (no checks here).
 
@@ -53,13 +54,14 @@ from ._grid import mesh_words
 from ._obb_tree import TREE_ARRAYS, build_tree
 from ._wrap import WARP_SCALAR, Overloads, launch_in_chunks, vectors
 from ._wrap import warp as wp
+from .closest import triangle_distance_sq
 
 wp.set_module_options({"enable_backward": False})
 
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids",
+    "nearest_centroids", "PatchSearch", "patch_closest_faces",
 ]  # fmt: skip
 
 
@@ -459,3 +461,116 @@ def nearest_centroids(points: np.ndarray, centroids: np.ndarray, radius: float, 
         grid = hash_grid(centroids_wp, cell_width, dims)
         launch_in_chunks(_nearest_centroid(dtype), 1, points.shape[0], [grid.id, points_wp, centroids_wp, params], [labels])
     return labels.numpy()
+
+
+# ---------------------------------------------------------------------------------------------
+# Closest faces on cluster patches.
+
+# Patch queries are heavy (hundreds of faces each): chunks this small still pay their launch.
+PATCH_MIN_CHUNK = 64
+# Slack of the bounding-sphere pruning, in units of the working dtype's epsilon times the
+# magnitudes compared: it covers the rounding of the centre distances and of the bounds.
+PATCH_BOUND_SLACK = 64
+
+
+@wp.kernel
+@no_type_check
+def _patch_closest_kernel(
+    points: wp.array(dtype=Any), patches: wp.array(dtype=wp.int32), vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32), candidates: wp.array(dtype=wp.int32), centres: wp.array(dtype=Any), radii: wp.array(dtype=Any),
+    slack: wp.array(dtype=Any), offset: wp.int32, found: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    _, t = wp.tid()
+    i = t + offset
+    p = points[i]
+    patch = patches[i]
+    start = offsets[patch]
+    stop = offsets[patch + 1]
+    # Each face lies in its bounding sphere, so |p - centre| -/+ radius bound its distance: the
+    # smallest upper bound rules out every face whose lower bound exceeds it.
+    upper = wp.length(p - centres[candidates[start]]) + radii[candidates[start]]
+    for j in range(start + 1, stop):
+        face = candidates[j]
+        upper = wp.min(upper, wp.length(p - centres[face]) + radii[face])
+    best = int(-1)
+    best_d2 = type(upper)(0.0)
+    # Candidates ascend within a patch, so the strict comparison keeps the lowest index of a tie.
+    for j in range(start, stop):
+        face = candidates[j]
+        to_centre = wp.length(p - centres[face])
+        if to_centre - radii[face] <= upper + slack[0] * (to_centre + radii[face] + upper):
+            d2 = triangle_distance_sq(p, vertices[faces[3 * face]], vertices[faces[3 * face + 1]], vertices[faces[3 * face + 2]])
+            if best < 0 or d2 < best_d2:
+                best = face
+                best_d2 = d2
+    found[i] = best
+
+
+_patch_closest = Overloads(
+    _patch_closest_kernel,
+    lambda s: {"points": vectors(s), "vertices": vectors(s), "centres": vectors(s), "radii": wp.array(dtype=s), "slack": wp.array(dtype=s)},
+)
+
+
+@wp.kernel
+@no_type_check
+def _face_sphere_kernel(vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.int32), centres: wp.array(dtype=Any), radii: wp.array(dtype=Any)):
+    face = wp.tid()
+    a = vertices[faces[3 * face]]
+    b = vertices[faces[3 * face + 1]]
+    c = vertices[faces[3 * face + 2]]
+    centre = (a + b + c) / type(a[0])(3.0)
+    centres[face] = centre
+    radii[face] = wp.max(wp.max(wp.length(a - centre), wp.length(b - centre)), wp.length(c - centre))
+
+
+_face_sphere = Overloads(_face_sphere_kernel, lambda s: {"vertices": vectors(s), "centres": vectors(s), "radii": wp.array(dtype=s)})
+
+
+class PatchSearch:
+    """A triangle surface and its cluster patches on ``device``, for :func:`patch_closest_faces`.
+
+    ``vertices`` ``(V, 3)`` float32 or float64 (the working dtype), ``faces`` ``(F, 3)``
+    int32; patch ``k`` is ``candidates[offsets[k]:offsets[k + 1]]``, ascending face indices, at
+    least one per patch. Each face also gets a bounding sphere: its centroid and the largest
+    distance from there to a corner (their rounding is within the pruning's slack).
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, offsets: np.ndarray, candidates: np.ndarray, device: str):
+        self.dtype = np.dtype(vertices.dtype)
+        scalar = WARP_SCALAR[self.dtype]
+        vec = wp.types.vector(3, scalar)
+        self.device = device
+
+        def as_int(values: np.ndarray) -> wp.array:
+            return wp.array(np.ascontiguousarray(values, np.int32).reshape(-1), dtype=wp.int32, device=device)
+
+        vertices_wp: wp.array = wp.array(vertices, dtype=vec, device=device)
+        faces_wp = as_int(faces)
+        centres = wp.empty(faces.shape[0], dtype=vec, device=device)
+        radii = wp.empty(faces.shape[0], dtype=scalar, device=device)
+        wp.launch(_face_sphere(self.dtype), dim=faces.shape[0], inputs=[vertices_wp, faces_wp], outputs=[centres, radii], device=device)
+        slack: wp.array = wp.array(np.array([PATCH_BOUND_SLACK * np.finfo(self.dtype).eps], self.dtype), dtype=scalar, device=device)
+        self.arrays = [vertices_wp, faces_wp, as_int(offsets), as_int(candidates), centres, radii, slack]
+
+
+def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.ndarray) -> np.ndarray:
+    """``(Q,)`` int32: the nearest face of each point ``(Q, 3)`` (the working dtype) among the
+    faces of its patch ``patches`` ``(Q,)``; distances exact in the working dtype, ties to the
+    lowest face index."""
+    vec = wp.types.vector(3, WARP_SCALAR[search.dtype])
+    found = wp.empty(points.shape[0], dtype=wp.int32, device=search.device)
+    vertices, faces, offsets, candidates, centres, radii, slack = search.arrays
+    inputs = [
+        wp.array(points, dtype=vec, device=search.device),
+        wp.array(patches, dtype=wp.int32, device=search.device),
+        vertices,
+        faces,
+        offsets,
+        candidates,
+        centres,
+        radii,
+        slack,
+    ]
+    launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=PATCH_MIN_CHUNK)
+    return found.numpy()

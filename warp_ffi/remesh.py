@@ -1,7 +1,10 @@
-"""Nearest-centroid assignment for the clustering remesher, on a Warp hash grid.
+"""The clustering remesher's host-side kernels: nearest centroids on a Warp hash grid, and the
+nearest face of each point among its cluster's faces.
 
-A host-side NumPy function; it lives in :mod:`warp_ffi.host` with the other host-side entry
-points and is re-exported here under the name geomjax imports.
+Host-side NumPy functions; they live in :mod:`warp_ffi.host` with the other host-side entry
+points and are re-exported here under the names geomjax imports.
 """
 
+from .host import PatchSearch as PatchSearch
 from .host import nearest_centroids as nearest_centroids
+from .host import patch_closest_faces as patch_closest_faces

@@ -22,6 +22,7 @@ from .._projection import SurfaceProjector
 from .._sharding import outside_context_mesh
 from .._validate import check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
 from ..sample.farthest import farthest_point_sampling
+from ._patch_projection import PatchProjector
 from ._quadrics import ClusterQuadrics
 from ._surface_clusters import MeshEdges, cluster_means, connected_clusters, mend_tears
 from ._triangulation import (
@@ -131,7 +132,10 @@ def remeshing(
        the closest point of the source surface (a Warp BVH search, or brute force on the JAX
        path, then :func:`geomjax._geometry.closest_point_on_triangle`). geomjax first moves
        it to the point closest to the planes of the cluster's triangles, along the directions
-       in which they bend (across a crease, onto a tip), so that features are not cut off.
+       in which they bend (across a crease, onto a tip), so that features are not cut off, and
+       takes the closest point of the cluster's own *patch* (the source triangles with a
+       corner in the cluster; ties: the lowest triangle index), which keeps it on its own sheet
+       where the surface passes close to itself.
     5. Topology: every input triangle is relabelled by its vertices' clusters; triangles with a
        repeated label are dropped, duplicates (in any orientation) keep their first occurrence,
        triangles of zero area after projection are dropped (geomjax first puts their corners
@@ -146,7 +150,7 @@ def remeshing(
        mass-weighted mean of the circumcentres of its triangles (the midpoint of the longest
        edge for an obtuse one), within the directions in which its cluster's triangles are
        flat (in the tangent plane, along a crease, not at a tip or corner), and is projected
-       onto the source surface again; a move that would overturn a triangle is undone.
+       onto its cluster's patch again; a move that would overturn a triangle is undone.
        Boundary vertices stay. A complete flip pass follows; then each interior vertex of
        degree three that lies near the plane of its neighbours is removed, and the shortest
        edge of each triangle with an angle below 12 degrees is collapsed into its endpoint on
@@ -158,7 +162,7 @@ def remeshing(
        in the input frame and dtype.
 
     The output is manifold in the sense that every edge has at most two triangles, and every
-    vertex lies on the source surface. A closed input stays closed and keeps its Euler
+    vertex lies on the source surface (on its cluster's patch). A closed input stays closed and keeps its Euler
     characteristic (genus) whenever the clusters can resolve its thin parts and tunnels; where
     they cannot, a :class:`RemeshTopologyWarning` says so (use more clusters). Output vertices
     are not welded by position.
@@ -184,9 +188,10 @@ def remeshing(
         farthest_point_threshold: integer ``>= 0``; 0 disables farthest-point seeding.
         farthest_point_oversampling: integer ``>= 1``.
         implementation: ``"warp"``, ``"jax"`` (also ``"torch"``) or ``None``. Warp assigns
-            vertices on a hash grid of centroids (both CPU cores) and projects with a BVH; the
-            JAX path compares every vertex with every centroid and every centroid with every
-            triangle (a reference for small meshes). Both share the seeding and the topology
+            vertices on a hash grid of centroids and measures each point against its patch's
+            triangles in a kernel (both CPU cores); the JAX path compares every vertex with
+            every centroid and measures every (point, patch triangle) pair at once (a reference
+            for small meshes). Both share the seeding and the topology
             step (host NumPy). ``None`` picks Warp on every platform when warp-lang is installed
             (``benchmarks/bench_sampling_remesh.py`` measures it on CPU), JAX otherwise.
 
@@ -199,8 +204,8 @@ def remeshing(
             counts, non-real scales, traced inputs (the output size depends on the data, so this
             runs eagerly: call it outside ``jit``).
         ValueError: bad shapes, ``V < 3``, ``K`` outside ``[3, V]``, indices out of range,
-            non-finite vertices, a non-positive or non-finite density, out-of-range options, a
-            zero-area surface, an input split across processes (a multi-host array: this runs
+            non-finite vertices, coordinates beyond the square root of the dtype's range, a
+            non-positive or non-finite density, out-of-range options, a zero-area surface, an input split across processes (a multi-host array: this runs
             on one host; replicated arrays and arrays on several local devices are read from
             one device, also under ``jax.set_mesh``).
         RuntimeError: no triangle survives the topology step.
@@ -292,9 +297,16 @@ def remesh_with_sources(
     backend = select_implementation(_NAME, options["implementation"], platform=platform_of(vertices)).name
     device = next(iter(vertices.devices()))
     host = np.asarray(vertices)
-    # Step 4's search tree (Warp kernels, which run outside the GIL) is built on another thread
-    # while the host work of steps 1 to 3 runs.
-    projector = _background().submit(SurfaceProjector, vertices, faces, backend, _NAME)
+    # Steps 4 to 6 measure the output in the input frame: areas and distances there square the
+    # coordinates.
+    largest = float(np.max(np.abs(host)))
+    if largest > (limit := math.sqrt(float(np.finfo(dtype).max)) / 4):
+        raise ValueError(
+            f"{_NAME}: vertex coordinates must be at most {limit:.3g} in magnitude in {dtype} (their squares overflow), got {largest:.3g}: rescale the mesh"
+        )
+    # The reference's search tree (Warp kernels, which run outside the GIL) is built on another
+    # thread while the host work of steps 1 to 3 runs.
+    projector = _background().submit(SurfaceProjector, vertices, faces, backend, _NAME) if reference else None
 
     # 1. Normalised frame, areas and integration masses.
     low, high = host.min(axis=0), host.max(axis=0)
@@ -340,17 +352,17 @@ def remesh_with_sources(
     else:
         centroids, labels = _lloyd_jax(jax.device_put(x, device), jax.device_put(mass.astype(dtype), device), jax.device_put(centroids, device), max_iterations)
     index_dtype = jnp.int64 if np.dtype(mesh_indices.dtype) == np.int64 else jnp.int32
-    project = projector.result()
-    if reference:
+    if projector is not None:
         # 4. and 5. as the reference: projected centroids and their relabelled triangles.
-        positions, source_faces, barycentric = project((centroids * scale + centre).astype(dtype))
+        positions, source_faces, barycentric = projector.result()((centroids * scale + centre).astype(dtype))
         triangles = _surviving(distinct_triangles(labels[faces]), positions, "topology reconstruction")
         return _result(positions, triangles, source_faces, barycentric, index_dtype, device)
     edges = MeshEdges.of(x, faces)
     centroids, labels, distance = connected_clusters(edges, x, mass, centroids, labels, GRAPH_LLOYD_ROUNDS)
     centroids, labels = mend_tears(edges, x, faces, mass, centroids, labels, distance, TEAR_REPAIR_ROUNDS)
 
-    # 4. A point per cluster on the source surface, in the input frame.
+    # 4. A point per cluster on its patch of the source surface, in the input frame.
+    project = PatchProjector(vertices, faces, labels, n_clusters, backend)
     quadrics = ClusterQuadrics.of(x, faces, face_area, labels, n_clusters)
     positions, source_faces, barycentric = project((quadrics.snap(centroids, spacing) * scale + centre).astype(dtype))
 
@@ -359,7 +371,7 @@ def remesh_with_sources(
     flat = degenerate_vertices(triangles, positions, n_clusters)
     if np.any(flat):  # quadric points that make a triangle flat fall back to the centroids
         positions, source_faces, barycentric = (np.array(a) for a in (positions, source_faces, barycentric))
-        positions[flat], source_faces[flat], barycentric[flat] = project((centroids[flat] * scale + centre).astype(dtype))
+        positions[flat], source_faces[flat], barycentric[flat] = project((centroids[flat] * scale + centre).astype(dtype), np.flatnonzero(flat))
     triangles = _surviving(triangles, positions, "topology reconstruction")
 
     # 6. Relaxation on the surface. Flips and the removals below touch interior edges and

@@ -1,0 +1,88 @@
+"""The remesher's cluster-patch projection: patches, nearest points on them, ties, both backends."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from benchmarks import _quality as quality
+from geomjax import icosphere
+from geomjax.remesh._patch_projection import PatchProjector, cluster_patches
+
+pytest.importorskip("warp")
+
+BACKENDS = ["jax", "warp"]
+NUM_CLUSTERS = 12
+
+
+def _sphere_with_clusters():
+    """A jittered icosphere(2) and random cluster labels, cluster 5 left empty."""
+    sphere = icosphere(2)
+    rng = np.random.default_rng(0)
+    vertices = np.asarray(sphere.points) * (1 + 0.05 * rng.uniform(-1, 1, (sphere.points.shape[0], 1)))
+    faces = np.asarray(sphere.cells)
+    labels = rng.integers(0, NUM_CLUSTERS - 1, vertices.shape[0])
+    labels[labels == 5] = NUM_CLUSTERS - 1
+    return vertices, faces, labels
+
+
+def test_patches_are_the_faces_touching_each_cluster():
+    vertices, faces, labels = _sphere_with_clusters()
+    offsets, candidates = cluster_patches(faces, labels, NUM_CLUSTERS)
+    assert offsets.dtype == candidates.dtype == np.int32 and offsets.shape == (NUM_CLUSTERS + 1,)
+    for k in range(NUM_CLUSTERS):
+        patch = candidates[offsets[k] : offsets[k + 1]]
+        expected = [f for f in range(faces.shape[0]) if k in labels[faces[f]]]
+        # An empty cluster gets face 0: its vertex is unused, but it must land somewhere.
+        np.testing.assert_array_equal(patch, expected if expected else [0])
+    assert offsets[6] - offsets[5] == 1
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_projection_is_the_nearest_point_of_the_patch(backend, dtype):
+    vertices, faces, labels = _sphere_with_clusters()
+    rng = np.random.default_rng(1)
+    targets = rng.normal(size=(40, 3)) * rng.uniform(0.2, 1.5, (40, 1))
+    clusters = rng.integers(0, NUM_CLUSTERS, 40)
+    project = PatchProjector(jnp.asarray(vertices, dtype), faces, labels, NUM_CLUSTERS, backend)
+    positions, found, weights = project(targets.astype(dtype), clusters)
+    assert positions.dtype == weights.dtype == dtype and found.dtype == np.int32
+    offsets, candidates = cluster_patches(faces, labels, NUM_CLUSTERS)
+    eps = float(jnp.finfo(dtype).eps)
+    host = vertices.astype(dtype).astype(np.float64)
+    for i, (target, k) in enumerate(zip(targets.astype(dtype).astype(np.float64), clusters, strict=True)):
+        patch = candidates[offsets[k] : offsets[k + 1]]
+        corners = host[faces[patch]]
+        # Independent closest points (Ericson's Voronoi regions, float64) on every patch face.
+        closest = quality._closest_points_on_triangles(np.broadcast_to(target, (patch.size, 3)), corners[:, 0], corners[:, 1], corners[:, 2])
+        distances = np.linalg.norm(closest - target, axis=1)
+        assert found[i] in patch
+        # The chosen face is a nearest one, up to the rounding of the distances (scale ~ 1).
+        assert distances[patch == found[i]][0] <= distances.min() + 64 * eps
+        np.testing.assert_allclose(positions[i], closest[patch == found[i]][0], atol=64 * eps)
+        np.testing.assert_allclose(np.einsum("k,kd->d", weights[i].astype(np.float64), host[faces[found[i]]]), positions[i], atol=64 * eps)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_ties_go_to_the_lowest_face(backend):
+    # A point straight out from a vertex: every face of the patch around that vertex has the
+    # vertex as its closest point, at the same distance.
+    vertices, faces, labels = _sphere_with_clusters()
+    vertex = 7
+    k = labels[vertex]
+    project = PatchProjector(jnp.asarray(vertices), faces, labels, NUM_CLUSTERS, backend)
+    positions, found, _ = project(vertices[vertex][None] * 1.2, np.array([k]))
+    around = np.flatnonzero(np.any(faces == vertex, axis=1))
+    assert found[0] == around.min()
+    np.testing.assert_allclose(positions[0], vertices[vertex], atol=1e-15)
+
+
+def test_backends_agree():
+    # One target per cluster (the remesher's call without clusters): row k is cluster k's.
+    vertices, faces, labels = _sphere_with_clusters()
+    targets = np.random.default_rng(2).normal(size=(NUM_CLUSTERS, 3))
+    jax_out, warp_out = (PatchProjector(jnp.asarray(vertices), faces, labels, NUM_CLUSTERS, backend)(targets) for backend in BACKENDS)
+    np.testing.assert_array_equal(jax_out[1], warp_out[1])
+    np.testing.assert_allclose(jax_out[0], warp_out[0], atol=1e-14)
+    offsets, candidates = cluster_patches(faces, labels, NUM_CLUSTERS)
+    assert all(jax_out[1][k] in candidates[offsets[k] : offsets[k + 1]] for k in range(NUM_CLUSTERS))
