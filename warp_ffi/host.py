@@ -38,7 +38,12 @@ centroid closer than the search radius times ``1 - 2**-12`` is the nearest of al
 the cell assignment, which the margin covers); a point with none that close even within
 ``radius`` scans all centroids. The answer is therefore always the global nearest centroid, and
 ``radius`` only sets the speed. The first, small search visits a few cells and settles nearly
-every point (a centroidal cell's radius is about 0.6 cluster spacings).
+every point (a centroidal cell's radius is about 0.6 cluster spacings). Given the previous
+labels (Lloyd iterations), a point first measures its previous cluster's moved centroid ``c``:
+when it is closer than half the distance ``g`` from ``c`` to any other centroid (times the
+margin), no other centroid can be as close (``|p - c_j| >= g - |p - c|``), and the search is
+skipped; that settles most points of a centroidal layout with one distance. ``g`` is the
+nearest other centroid within ``radius``, or ``radius`` if none is (a lower bound either way).
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ import numpy as np
 
 from ._grid import mesh_words
 from ._obb_tree import TREE_ARRAYS, build_tree
-from ._wrap import WARP_SCALAR, Overloads, launch_in_chunks, vectors
+from ._wrap import WARP_SCALAR, Overloads, launch_in_chunks, scalars, vectors
 from ._wrap import warp as wp
 from .closest import triangle_distance_sq
 
@@ -392,6 +397,7 @@ def eliminate(row_offsets: np.ndarray, columns: np.ndarray, pair_weight: np.ndar
 
 ACCEPT_MARGIN = 1.0 - 2.0**-12
 INNER_RADIUS_FRACTION = 0.5  # the first search radius, as a fraction of ``radius``
+_ACCEPT_MARGIN = wp.constant(ACCEPT_MARGIN)
 
 
 @wp.func
@@ -402,13 +408,39 @@ def _closer(d2: Any, j: int, best_d2: Any, best: int):
 
 @wp.kernel
 @no_type_check
+def _centroid_gap_kernel(grid: wp.uint64, centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), gaps: wp.array(dtype=Any)):
+    k = wp.tid()
+    c = centroids[k]
+    # A lower bound of the distance to the nearest other centroid: the nearest found within the
+    # outer radius, else that radius (params: see _nearest_centroid_kernel).
+    accept = params[3]
+    gap2 = accept * accept
+    query = wp.hash_grid_query(grid, c, params[2])
+    j = int(0)
+    while wp.hash_grid_query_next(query, j):
+        if j != k:
+            d = centroids[j] - c
+            gap2 = wp.min(gap2, wp.dot(d, d))
+    gaps[k] = wp.sqrt(gap2)
+
+
+@wp.kernel
+@no_type_check
 def _nearest_centroid_kernel(
-    grid: wp.uint64, points: wp.array(dtype=Any), centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), offset: wp.int32,
-    labels: wp.array(dtype=wp.int32),
+    grid: wp.uint64, points: wp.array(dtype=Any), centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), previous: wp.array(dtype=wp.int32),
+    gaps: wp.array(dtype=Any), offset: wp.int32, labels: wp.array(dtype=wp.int32),
 ):  # fmt: skip
     _, t = wp.tid()
     i = t + offset
     p = points[i]
+    if previous.shape[0] > 0:
+        own = previous[i]
+        d = centroids[own] - p
+        # 2 |p - c| < g: c is strictly the nearest (see the module docstring).
+        bound = gaps[own] * type(p[0])(_ACCEPT_MARGIN)
+        if type(p[0])(4.0) * wp.dot(d, d) < bound * bound:
+            labels[i] = own
+            return
     best = int(-1)
     best_d2 = params[0] * params[0]
     # Two radii (params: inner radius, its acceptance distance, outer radius, its acceptance
@@ -439,15 +471,21 @@ def _nearest_centroid_kernel(
     labels[i] = best
 
 
-_nearest_centroid = Overloads(_nearest_centroid_kernel, lambda s: {"points": vectors(s), "centroids": vectors(s), "params": wp.array(dtype=s)})
+_CENTROID_TYPES = {"points": vectors, "centroids": vectors, "params": scalars, "gaps": scalars}
+_nearest_centroid = Overloads(_nearest_centroid_kernel, lambda s: {name: make(s) for name, make in _CENTROID_TYPES.items()})
+_centroid_gap = Overloads(_centroid_gap_kernel, lambda s: {name: make(s) for name, make in _CENTROID_TYPES.items()})
 
 
-def nearest_centroids(points: np.ndarray, centroids: np.ndarray, radius: float, cell_width: float, dims: tuple[int, int, int], device: str) -> np.ndarray:
+def nearest_centroids(
+    points: np.ndarray, centroids: np.ndarray, radius: float, cell_width: float, dims: tuple[int, int, int], device: str, previous: np.ndarray | None = None
+) -> np.ndarray:
     """``(N,)`` int32: index of the nearest centroid of each point (ties: lowest index).
 
     ``points`` and ``centroids`` share one float dtype (float32 or float64); centroids are
     bucketed in cells of ``cell_width`` (``radius`` suits: the first search then visits at most
-    two cells per axis).
+    two cells per axis). ``previous``: the points' labels before the centroids moved (``(N,)``
+    integers in ``[0, K)``), which settles most points with one distance; the result is the
+    same without.
     """
     dtype = np.dtype(points.dtype)
     scalar = WARP_SCALAR[dtype]
@@ -457,9 +495,13 @@ def nearest_centroids(points: np.ndarray, centroids: np.ndarray, radius: float, 
     inner = radius * INNER_RADIUS_FRACTION
     params: wp.array = wp.array(np.array([inner, inner * ACCEPT_MARGIN, radius, radius * ACCEPT_MARGIN], dtype), dtype=scalar, device=device)
     labels = wp.empty(points.shape[0], dtype=wp.int32, device=device)
+    previous_wp: wp.array = wp.array(np.zeros(0, np.int32) if previous is None else previous.astype(np.int32), dtype=wp.int32, device=device)
+    gaps = wp.zeros(centroids.shape[0], dtype=scalar, device=device)
     with GRID_LOCK:
         grid = hash_grid(centroids_wp, cell_width, dims)
-        launch_in_chunks(_nearest_centroid(dtype), 1, points.shape[0], [grid.id, points_wp, centroids_wp, params], [labels])
+        if previous is not None:
+            wp.launch(_centroid_gap(dtype), dim=centroids.shape[0], inputs=[grid.id, centroids_wp, params], outputs=[gaps], device=device)
+        launch_in_chunks(_nearest_centroid(dtype), 1, points.shape[0], [grid.id, points_wp, centroids_wp, params, previous_wp, gaps], [labels])
     return labels.numpy()
 
 

@@ -494,9 +494,11 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device):
     cell = radius
     low, high = x.min(axis=0) - radius, x.max(axis=0) + radius
     dims = table_dims(low, high, cell, (resolution,) * 3)
+    labels = None
     for _ in range(iterations):
-        centroids = cluster_means(x, mass, nearest_centroids(x, centroids, radius, cell, dims, warp_device), centroids)
-    return centroids, nearest_centroids(x, centroids, radius, cell, dims, warp_device)
+        labels = nearest_centroids(x, centroids, radius, cell, dims, warp_device, labels)
+        centroids = cluster_means(x, mass, labels, centroids)
+    return centroids, nearest_centroids(x, centroids, radius, cell, dims, warp_device, labels)
 
 
 def _lloyd_jax(x, mass, centroids, iterations):

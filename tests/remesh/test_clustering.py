@@ -395,3 +395,28 @@ def test_low_precision_vertex_density_is_accepted(implementation):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=str(dtype))
     with pytest.raises(TypeError, match="vertex_density"):
         remeshing(vertices, faces, clusters, vertex_density=jnp.ones(len(vertices), jnp.int32), implementation=implementation)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_nearest_centroids_with_previous_labels_are_exact(dtype):
+    # Lloyd's warp assignment, given the previous labels, skips the search for points much
+    # closer to their old cluster's moved centroid than that centroid is to any other; the
+    # answer must stay the brute-force nearest (ties: lowest index), also after a big move.
+    from warp_ffi.host import nearest_centroids
+
+    from geomjax._hash_grid import table_dims
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1, 1, (3000, 3)).astype(dtype)
+    centroids = points[rng.choice(3000, 40, replace=False)]
+    radius = 0.5
+    dims = table_dims(points.min(0) - radius, points.max(0) + radius, radius, (32,) * 3)
+    labels = None
+    for step in range(4):
+        found = nearest_centroids(points, centroids, radius, radius, dims, "cpu", labels)
+        offsets = points[:, None, :].astype(np.float64) - centroids[None].astype(np.float64)
+        np.testing.assert_array_equal(found, np.argmin(np.sum(offsets**2, axis=2), axis=1))
+        labels = found
+        moved = np.array([points[labels == k].mean(axis=0) if np.any(labels == k) else centroids[k] for k in range(40)], dtype)
+        # One centroid jumps across the box: its old members must find their new nearest.
+        centroids = np.where(np.arange(40)[:, None] == step, -moved, moved).astype(dtype)
