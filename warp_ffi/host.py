@@ -471,9 +471,12 @@ def _nearest_centroid_kernel(
     labels[i] = best
 
 
-_CENTROID_TYPES = {"points": vectors, "centroids": vectors, "params": scalars, "gaps": scalars}
-_nearest_centroid = Overloads(_nearest_centroid_kernel, lambda s: {name: make(s) for name, make in _CENTROID_TYPES.items()})
-_centroid_gap = Overloads(_centroid_gap_kernel, lambda s: {name: make(s) for name, make in _CENTROID_TYPES.items()})
+def _centroid_types(scalar) -> dict:
+    return {"points": vectors(scalar), "centroids": vectors(scalar), "params": scalars(scalar), "gaps": scalars(scalar)}
+
+
+_nearest_centroid = Overloads(_nearest_centroid_kernel, _centroid_types)
+_centroid_gap = Overloads(_centroid_gap_kernel, _centroid_types)
 
 
 def nearest_centroids(
