@@ -46,18 +46,25 @@ COLLAPSE_ROUNDS = 4
 
 
 def row_dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``(N,)`` dot products of the rows of two ``(N, 3)`` arrays.
+    """``(...)`` dot products of the rows of two ``(..., 3)`` arrays.
 
     Column by column: NumPy's reductions along a length-3 axis (``np.sum(u * v, axis=1)``,
     ``np.linalg.norm(axis=1)``) and ``np.cross`` cost several times more on the remesher's
-    vertex- and face-sized arrays.
+    vertex- and face-sized arrays (the same products and sums, so the same results).
     """
-    return u[:, 0] * v[:, 0] + u[:, 1] * v[:, 1] + u[:, 2] * v[:, 2]
+    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
+
+
+def row_norm(u: np.ndarray) -> np.ndarray:
+    """``(...)`` Euclidean norms of the rows of a ``(..., 3)`` array (see :func:`row_dot`)."""
+    return np.sqrt(row_dot(u, u))
 
 
 def row_cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``(N, 3)`` cross products of the rows of two ``(N, 3)`` arrays (see :func:`row_dot`)."""
-    return np.stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2], u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]], axis=1)
+    """``(..., 3)`` cross products of the rows of two ``(..., 3)`` arrays (see :func:`row_dot`)."""
+    return np.stack(
+        [u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2], u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1
+    )
 
 
 def half_edges(triangles: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -101,8 +108,8 @@ def _area_check(triangles: np.ndarray, positions: np.ndarray) -> tuple[np.ndarra
     """Per triangle: non-zero area up to rounding (bool), and the doubled area."""
     a, b, c = (positions[triangles[:, k]] for k in range(3))
     ab, ac, bc = b - a, c - a, c - b
-    area2 = np.linalg.norm(np.cross(ab, ac), axis=1)
-    edge2 = np.sum(ab * ab + ac * ac + bc * bc, axis=1)
+    area2 = row_norm(row_cross(ab, ac))
+    edge2 = row_dot(ab, ab) + row_dot(ac, ac) + row_dot(bc, bc)
     return area2 > DEGENERATE_EPSILONS * np.finfo(positions.dtype).eps * edge2, area2
 
 
@@ -135,7 +142,7 @@ def drop_crowded_edges(triangles: np.ndarray, area2: np.ndarray) -> np.ndarray:
 
 def _corner_angle(apex: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     u, v = a - apex, b - apex
-    return np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), np.sum(u * v, axis=-1))
+    return np.arctan2(row_norm(row_cross(u, v)), row_dot(u, v))
 
 
 def min_angles(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -176,14 +183,14 @@ def delaunay_flips(positions: np.ndarray, triangles: np.ndarray, rounds: int = F
         new_keys = np.minimum(p, q) * stride + np.maximum(p, q)
         slot = np.minimum(np.searchsorted(edges, new_keys), edges.size - 1)
         degree = np.bincount(np.concatenate([edges // stride, edges % stride]), minlength=int(stride))
-        normal_u, normal_v = _unit(np.cross(x[v] - x[u], x[p] - x[u])), _unit(np.cross(x[u] - x[v], x[q] - x[v]))
+        normal_u, normal_v = _unit(row_cross(x[v] - x[u], x[p] - x[u])), _unit(row_cross(x[u] - x[v], x[q] - x[v]))
         old_normal = normal_u + normal_v
-        unfolded = (np.sum(np.cross(x[q] - x[u], x[p] - x[u]) * old_normal, axis=1) > 0) & (np.sum(np.cross(x[v] - x[q], x[p] - x[q]) * old_normal, axis=1) > 0)
+        unfolded = (row_dot(row_cross(x[q] - x[u], x[p] - x[u]), old_normal) > 0) & (row_dot(row_cross(x[v] - x[q], x[p] - x[q]), old_normal) > 0)
         # How far the new diagonal pq passes from the old one uv, relative to its length: 0 for a
         # flat pair or a sliver (p near uv), tan(dihedral / 2) / 2 across a symmetric crease.
-        across = np.cross(x[v] - x[u], x[q] - x[p])
-        gap = np.abs(np.sum((x[p] - x[u]) * across, axis=1)) / np.maximum(np.linalg.norm(across, axis=1), np.finfo(np.float64).tiny)
-        flat = gap <= 0.5 * math.tan(math.radians(FLIP_MAX_DIHEDRAL_DEGREES) / 2) * np.linalg.norm(x[q] - x[p], axis=1)
+        across = row_cross(x[v] - x[u], x[q] - x[p])
+        gap = np.abs(row_dot(x[p] - x[u], across)) / np.maximum(row_norm(across), np.finfo(np.float64).tiny)
+        flat = gap <= 0.5 * math.tan(math.radians(FLIP_MAX_DIHEDRAL_DEGREES) / 2) * row_norm(x[q] - x[p])
         candidates = np.flatnonzero((edges[slot] != new_keys) & (degree[u] > 3) & (degree[v] > 3) & unfolded & flat)
         if candidates.size == 0:
             break
@@ -210,7 +217,7 @@ def _first_occurrence(values: np.ndarray) -> np.ndarray:
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    norm = row_norm(v)[..., None]
     return v / np.where(norm > 0, norm, 1.0)
 
 
@@ -237,11 +244,11 @@ def relaxation_targets(positions: np.ndarray, triangles: np.ndarray, vertex_rho:
     x = positions.astype(np.float64)
     a, b, c = (x[triangles[:, k]] for k in range(3))
     ab, ac = b - a, c - a
-    normal = np.cross(ab, ac)
-    normal2 = np.sum(normal * normal, axis=1)
-    ab2, ac2, bc2 = np.sum(ab * ab, axis=1), np.sum(ac * ac, axis=1), np.sum((c - b) ** 2, axis=1)
+    normal = row_cross(ab, ac)
+    normal2 = row_dot(normal, normal)
+    ab2, ac2, bc2 = row_dot(ab, ab), row_dot(ac, ac), row_dot(c - b, c - b)
     safe = np.where(normal2 > 0, normal2, 1.0)
-    centre = a + (np.cross(normal, ab) * ac2[:, None] + np.cross(ac, normal) * ab2[:, None]) / (2 * safe[:, None])
+    centre = a + (row_cross(normal, ab) * ac2[:, None] + row_cross(ac, normal) * ab2[:, None]) / (2 * safe[:, None])
     # Obtuse at a (bc^2 > ab^2 + ac^2) puts the circumcentre beyond edge bc, and so on.
     longest = np.argmax(np.stack([bc2 - ab2 - ac2, ac2 - ab2 - bc2, ab2 - ac2 - bc2], axis=1), axis=1)
     obtuse = np.max(np.stack([bc2 - ab2 - ac2, ac2 - ab2 - bc2, ab2 - ac2 - bc2], axis=1), axis=1) >= 0
@@ -264,9 +271,9 @@ def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray)
     """``(V,)`` bool: vertices of triangles whose normal turns by more than 90 degrees."""
 
     def normals(x):
-        return np.cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
+        return row_cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
 
-    turned = np.sum(normals(old.astype(np.float64)) * normals(new.astype(np.float64)), axis=1) <= 0
+    turned = row_dot(normals(old.astype(np.float64)), normals(new.astype(np.float64))) <= 0
     mask = np.zeros(old.shape[0], bool)
     mask[triangles[turned].reshape(-1)] = True
     return mask
@@ -316,7 +323,7 @@ def remove_degree_three(positions: np.ndarray, triangles: np.ndarray, num_vertic
         # A vertex standing out of its link's plane is a tip of the surface: it stays.
         x = positions.astype(np.float64)
         la, lb, ld = x[a], x[b], x[d]
-        height = np.abs(np.sum((x[centre] - la) * _unit(np.cross(lb - la, ld - la)), axis=1))
+        height = np.abs(row_dot(x[centre] - la, _unit(row_cross(lb - la, ld - la))))
         longest = np.sqrt(np.max(np.stack([np.sum((lb - la) ** 2, 1), np.sum((ld - lb) ** 2, 1), np.sum((la - ld) ** 2, 1)]), axis=0))
         new &= height <= DEGREE_THREE_MAX_HEIGHT * longest
         if not np.any(new):
@@ -391,9 +398,9 @@ def _first_collapse(x, triangles, star, corners, fixed, strength, touched):
                 continue
             old = triangles[moved]
             new = np.where(old == gone, keep, old)
-            old_normal = np.cross(x[old[:, 1]] - x[old[:, 0]], x[old[:, 2]] - x[old[:, 0]])
-            new_normal = np.cross(x[new[:, 1]] - x[new[:, 0]], x[new[:, 2]] - x[new[:, 0]])
-            if np.all(np.sum(old_normal * new_normal, axis=1) > 0) and np.min(min_angles(x, new)) > poor_angle:
+            old_normal = row_cross(x[old[:, 1]] - x[old[:, 0]], x[old[:, 2]] - x[old[:, 0]])
+            new_normal = row_cross(x[new[:, 1]] - x[new[:, 0]], x[new[:, 2]] - x[new[:, 0]])
+            if np.all(row_dot(old_normal, new_normal) > 0) and np.min(min_angles(x, new)) > poor_angle:
                 return moved, new, sorted(shared)
     return None
 
