@@ -23,57 +23,32 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._geometry import closest_point_on_triangle
+from ._surface_clusters import ClusterPatches
 
-__all__ = ["PatchProjector", "cluster_patches"]
+__all__ = ["PatchProjector"]
 
 # Padded sizes are powers of two from these: the JAX programs compile once per bucket of sizes.
 MIN_PAIRS = 1024
 MIN_POINTS = 64
 
 
-def cluster_patches(faces: np.ndarray, labels: np.ndarray, num_clusters: int) -> tuple[np.ndarray, np.ndarray]:
-    """The patches of ``labels``' clusters as CSR ``(offsets (K + 1,), candidates)``, int32.
-
-    Patch ``k`` is ``candidates[offsets[k]:offsets[k + 1]]``: the faces with a corner labelled
-    ``k``, ascending. An empty cluster (no vertex) gets face 0, so every patch has a candidate;
-    its vertex is used by no triangle, so where it lands does not matter.
-    """
-    corner = labels[faces]
-    # Each face once per distinct cluster among its corners, in face order (row-major), so the
-    # stable sort by cluster below keeps the faces of a patch ascending.
-    distinct = np.ones(corner.shape, bool)
-    distinct[:, 1] = corner[:, 1] != corner[:, 0]
-    distinct[:, 2] = (corner[:, 2] != corner[:, 0]) & (corner[:, 2] != corner[:, 1])
-    cluster = corner[distinct]
-    face = np.nonzero(distinct)[0]
-    empty = np.flatnonzero(np.bincount(cluster, minlength=num_clusters) == 0)
-    if empty.size:
-        cluster = np.concatenate([cluster, empty])
-        face = np.concatenate([face, np.zeros(empty.size, face.dtype)])
-    # A stable sort of 16-bit keys is a radix sort: five times faster here than of wider ones.
-    order = np.argsort(cluster.astype(np.uint16) if num_clusters <= 1 << 16 else cluster, kind="stable")
-    offsets = np.zeros(num_clusters + 1, np.int32)
-    np.cumsum(np.bincount(cluster, minlength=num_clusters), out=offsets[1:])
-    return offsets, face[order].astype(np.int32)
-
-
 class PatchProjector:
     """Closest points on cluster patches: ``targets (Q, 3)`` of clusters ``(Q,)`` -> positions, faces, weights.
 
     ``vertices`` ``(V, 3)`` is the source surface (a JAX array, in the frame of the targets),
-    ``faces`` ``(F, 3)`` its validated host indices, ``labels`` ``(V,)`` the cluster of each
-    vertex; ``backend`` is ``"warp"`` or ``"jax"``. Calls return host NumPy arrays: positions
+    ``faces`` ``(F, 3)`` its validated host indices, ``patches`` its clusters' patches;
+    ``backend`` is ``"warp"`` or ``"jax"``. Calls return host NumPy arrays: positions
     ``(Q, 3)`` in the dtype of ``vertices``, int32 source faces ``(Q,)`` and barycentric weights
     ``(Q, 3)``.
     """
 
-    def __init__(self, vertices: jax.Array, faces: np.ndarray, labels: np.ndarray, num_clusters: int, backend: str):
+    def __init__(self, vertices: jax.Array, faces: np.ndarray, patches: ClusterPatches, backend: str):
         self.device = next(iter(vertices.devices()))
         self.vertices = vertices
         self.host_vertices = np.asarray(vertices)
         self.host_faces = np.ascontiguousarray(faces, np.int32)
         self.faces = jax.device_put(self.host_faces, self.device)
-        self.offsets, self.candidates = cluster_patches(faces, labels, num_clusters)
+        self.offsets, self.candidates = patches.offsets, patches.faces
         self.search = None
         if backend == "warp":
             import warp

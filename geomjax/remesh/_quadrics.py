@@ -14,7 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._triangulation import row_cross, row_dot
+from ._surface_clusters import ClusterPatches
+from ._triangulation import row_dot
 
 __all__ = ["ClusterQuadrics"]
 
@@ -41,18 +42,21 @@ class ClusterQuadrics(NamedTuple):
     basis: np.ndarray  # (K, 3, 3) the eigenvectors, as columns
 
     @classmethod
-    def of(cls, x: np.ndarray, faces: np.ndarray, face_area: np.ndarray, labels: np.ndarray, num: int) -> ClusterQuadrics:
-        a, b, c = (x[faces[:, k]].astype(np.float64) for k in range(3))
-        normal = row_cross(b - a, c - a)
-        normal /= np.where(face_area > 0, 2 * face_area, 1.0)[:, None]
-        corner_labels = labels[faces].reshape(-1)
-        third = np.repeat(face_area / 3, 3)
-        normal3, offset3 = np.repeat(normal, 3, axis=0), np.repeat(row_dot(normal, a), 3)
+    def of(cls, first_corners: np.ndarray, doubled_normals: np.ndarray, face_area: np.ndarray, patches: ClusterPatches) -> ClusterQuadrics:
+        """From the faces' first corners ``(F, 3)``, ``(b - a) x (c - a)`` and areas ``(F,)``
+        (float64) and the clusters' patches."""
+        normal = doubled_normals / np.where(face_area > 0, 2 * face_area, 1.0)[:, None]
+        # Per face, a third of its area times its plane's six quadric entries and three
+        # right-hand sides; per cluster, the sum over its patch, each face counted once per
+        # corner in the cluster.
+        third = face_area / 3
+        offset = row_dot(normal, first_corners)
+        entries = np.stack([third * normal[:, i] * normal[:, j] for i, j in zip(_ROWS, _COLUMNS)] + [third * offset * normal[:, k] for k in range(3)], axis=1)
+        sums = patches.incidence(face_area.size) @ entries
+        num = patches.offsets.size - 1
         quadric = np.zeros((num, 3, 3))
-        for row, column in zip(_ROWS, _COLUMNS):
-            entry = np.bincount(corner_labels, weights=third * normal3[:, row] * normal3[:, column], minlength=num)
-            quadric[:, row, column] = quadric[:, column, row] = entry
-        rhs = np.stack([np.bincount(corner_labels, weights=third * offset3 * normal3[:, k], minlength=num) for k in range(3)], axis=1)
+        quadric[:, _ROWS, _COLUMNS] = quadric[:, _COLUMNS, _ROWS] = sums[:, : _ROWS.size]
+        rhs = sums[:, _ROWS.size :]
         return cls(quadric, rhs, *np.linalg.eigh(quadric))
 
     def snap(self, start: np.ndarray, limit: float) -> np.ndarray:

@@ -19,7 +19,7 @@ from scipy.sparse import csgraph
 
 from ._triangulation import distinct_triangles, half_edges, row_dot
 
-__all__ = ["MeshEdges", "cluster_means", "connected_clusters", "mend_tears"]
+__all__ = ["ClusterPatches", "MeshEdges", "cluster_means", "connected_clusters", "mend_tears"]
 
 
 class MeshEdges(NamedTuple):
@@ -55,6 +55,52 @@ class MeshEdges(NamedTuple):
         boundary = np.unique(np.concatenate([a[single], b[single]]))
         used = np.count_nonzero(np.bincount(faces.reshape(-1), minlength=num))
         return cls(graph, boundary, int(used - starts.size + faces.shape[0]))
+
+
+class ClusterPatches(NamedTuple):
+    """Each cluster's *patch*: the faces with a corner in it, as CSR over the clusters.
+
+    Attributes:
+        offsets: ``(K + 1,)`` int32; patch ``k`` is ``faces[offsets[k]:offsets[k + 1]]``.
+        faces: int32 face indices, ascending within each patch.
+        corners: int32, how many corners of that face are in that cluster (1 to 3). An empty
+            cluster (no vertex) gets face 0 with 0 corners, so every patch has a face; its
+            vertex is used by no triangle, so where it lands does not matter.
+    """
+
+    offsets: np.ndarray
+    faces: np.ndarray
+    corners: np.ndarray
+
+    @classmethod
+    def of(cls, faces: np.ndarray, labels: np.ndarray, num: int) -> ClusterPatches:
+        label = labels[faces]
+        # Each face once per distinct cluster among its corners, with that cluster's number of
+        # corners, in face order (row-major): the stable sort by cluster below keeps the faces
+        # of a patch ascending.
+        same01, same02, same12 = label[:, 1] == label[:, 0], label[:, 2] == label[:, 0], label[:, 2] == label[:, 1]
+        distinct = np.ones(label.shape, bool)
+        distinct[:, 1] = ~same01
+        distinct[:, 2] = ~same02 & ~same12
+        count = np.ones(label.shape, np.int32)
+        count[:, 0] += same01.astype(np.int32) + same02
+        count[:, 1] += same12
+        cluster, face, corners = label[distinct], np.nonzero(distinct)[0], count[distinct]
+        empty = np.flatnonzero(np.bincount(cluster, minlength=num) == 0)
+        if empty.size:
+            cluster = np.concatenate([cluster, empty])
+            face = np.concatenate([face, np.zeros(empty.size, face.dtype)])
+            corners = np.concatenate([corners, np.zeros(empty.size, corners.dtype)])
+        # A stable sort of 16-bit keys is a radix sort: five times faster here than of wider ones.
+        order = np.argsort(cluster.astype(np.uint16) if num <= 1 << 16 else cluster, kind="stable")
+        offsets = np.zeros(num + 1, np.int32)
+        np.cumsum(np.bincount(cluster, minlength=num), out=offsets[1:])
+        return cls(offsets, face[order].astype(np.int32), corners[order])
+
+    def incidence(self, num_faces: int) -> sparse.csr_matrix:
+        """``(K, F)`` sparse matrix of corner counts: ``incidence @ per_face`` sums a per-face
+        quantity over each cluster's patch, a face counted once per corner in the cluster."""
+        return sparse.csr_matrix((self.corners.astype(np.float64), self.faces, self.offsets), shape=(self.offsets.size - 1, num_faces))
 
 
 def connected_clusters(edges: MeshEdges, x, mass, centroids, labels, rounds: int):

@@ -24,7 +24,7 @@ from .._validate import check_host_surface, check_host_vertex_field, check_integ
 from ..sample.farthest import farthest_point_sampling
 from ._patch_projection import PatchProjector
 from ._quadrics import ClusterQuadrics
-from ._surface_clusters import MeshEdges, cluster_means, connected_clusters, mend_tears
+from ._surface_clusters import ClusterPatches, MeshEdges, cluster_means, connected_clusters, mend_tears
 from ._triangulation import (
     boundary_vertices,
     collapse_poor_triangles,
@@ -315,7 +315,8 @@ def remesh_with_sources(
     if scale == 0.0:
         raise ValueError(f"{_NAME}: the surface has zero area (all vertices coincide)")
     x = ((host - centre) / scale).astype(dtype)
-    face_area = _triangle_areas(x, faces)
+    first_corners, doubled_normals = _doubled_normals(x, faces)
+    face_area = 0.5 * np.sqrt(row_dot(doubled_normals, doubled_normals))
     total_area = float(face_area.sum())
     if not total_area > 0.0:
         raise ValueError(f"{_NAME}: the surface has zero area")
@@ -362,8 +363,9 @@ def remesh_with_sources(
     centroids, labels = mend_tears(edges, x, faces, mass, centroids, labels, distance, TEAR_REPAIR_ROUNDS)
 
     # 4. A point per cluster on its patch of the source surface, in the input frame.
-    project = PatchProjector(vertices, faces, labels, n_clusters, backend)
-    quadrics = ClusterQuadrics.of(x, faces, face_area, labels, n_clusters)
+    patches = ClusterPatches.of(faces, labels, n_clusters)
+    project = PatchProjector(vertices, faces, patches, backend)
+    quadrics = ClusterQuadrics.of(first_corners, doubled_normals, face_area, patches)
     positions, source_faces, barycentric = project((quadrics.snap(centroids, spacing) * scale + centre).astype(dtype))
 
     # 5. Topology.
@@ -456,10 +458,11 @@ def _checked_density(vertex_density, vertices: jax.Array) -> np.ndarray | None:
 # Geometry and seeding (host NumPy, shared by both backends).
 
 
-def _triangle_areas(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    a, b, c = (x[faces[:, k]] for k in range(3))
-    double = row_cross(b - a, c - a)
-    return 0.5 * np.sqrt(row_dot(double, double))
+def _doubled_normals(x: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each face's first corner and ``(b - a) x (c - a)`` (float64, ``(F, 3)`` each): areas and
+    planes, once for the masses and the quadrics."""
+    a, b, c = (x[faces[:, k]].astype(np.float64) for k in range(3))
+    return a, row_cross(b - a, c - a)
 
 
 def _stratified_seeds(x: np.ndarray, mass: np.ndarray, count: int, width: float, rng: np.random.Generator) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""The remesher's cluster-patch projection: patches, nearest points on them, ties, both backends."""
+"""The remesher's cluster patches: their faces, the plane quadrics summed over them, and the
+nearest points on them (ties, both backends)."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -6,7 +7,9 @@ import pytest
 
 from benchmarks import _quality as quality
 from geomjax import icosphere
-from geomjax.remesh._patch_projection import PatchProjector, cluster_patches
+from geomjax.remesh._patch_projection import PatchProjector
+from geomjax.remesh._quadrics import ClusterQuadrics
+from geomjax.remesh._surface_clusters import ClusterPatches
 
 pytest.importorskip("warp")
 
@@ -27,14 +30,34 @@ def _sphere_with_clusters():
 
 def test_patches_are_the_faces_touching_each_cluster():
     vertices, faces, labels = _sphere_with_clusters()
-    offsets, candidates = cluster_patches(faces, labels, NUM_CLUSTERS)
-    assert offsets.dtype == candidates.dtype == np.int32 and offsets.shape == (NUM_CLUSTERS + 1,)
+    offsets, candidates, corners = ClusterPatches.of(faces, labels, NUM_CLUSTERS)
+    assert offsets.dtype == candidates.dtype == corners.dtype == np.int32 and offsets.shape == (NUM_CLUSTERS + 1,)
     for k in range(NUM_CLUSTERS):
-        patch = candidates[offsets[k] : offsets[k + 1]]
+        patch = slice(offsets[k], offsets[k + 1])
         expected = [f for f in range(faces.shape[0]) if k in labels[faces[f]]]
-        # An empty cluster gets face 0: its vertex is unused, but it must land somewhere.
-        np.testing.assert_array_equal(patch, expected if expected else [0])
-    assert offsets[6] - offsets[5] == 1
+        # An empty cluster gets face 0 with no corner: its vertex is unused, but it must land somewhere.
+        np.testing.assert_array_equal(candidates[patch], expected if expected else [0])
+        np.testing.assert_array_equal(corners[patch], [np.sum(labels[faces[f]] == k) for f in expected] if expected else [0])
+    assert offsets[6] - offsets[5] == 1 and np.any(corners == 2)
+
+
+def test_quadrics_sum_each_cluster_s_corner_planes():
+    vertices, faces, labels = _sphere_with_clusters()
+    corners = vertices[faces]
+    doubled = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area = np.linalg.norm(doubled, axis=1) / 2
+    quadrics = ClusterQuadrics.of(corners[:, 0], doubled, area, ClusterPatches.of(faces, labels, NUM_CLUSTERS))
+    # A plain loop: each corner of each face adds a third of the face's area times its plane.
+    expected = np.zeros((NUM_CLUSTERS, 3, 3))
+    expected_rhs = np.zeros((NUM_CLUSTERS, 3))
+    for f in range(faces.shape[0]):
+        n = doubled[f] / np.linalg.norm(doubled[f])
+        for vertex in faces[f]:
+            expected[labels[vertex]] += area[f] / 3 * np.outer(n, n)
+            expected_rhs[labels[vertex]] += area[f] / 3 * n * np.dot(n, corners[f, 0])
+    np.testing.assert_allclose(quadrics.quadric, expected, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(quadrics.rhs, expected_rhs, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(quadrics.quadric @ quadrics.basis, quadrics.basis * quadrics.weights[:, None, :], atol=1e-14)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -44,10 +67,11 @@ def test_projection_is_the_nearest_point_of_the_patch(backend, dtype):
     rng = np.random.default_rng(1)
     targets = rng.normal(size=(40, 3)) * rng.uniform(0.2, 1.5, (40, 1))
     clusters = rng.integers(0, NUM_CLUSTERS, 40)
-    project = PatchProjector(jnp.asarray(vertices, dtype), faces, labels, NUM_CLUSTERS, backend)
+    patches = ClusterPatches.of(faces, labels, NUM_CLUSTERS)
+    project = PatchProjector(jnp.asarray(vertices, dtype), faces, patches, backend)
     positions, found, weights = project(targets.astype(dtype), clusters)
     assert positions.dtype == weights.dtype == dtype and found.dtype == np.int32
-    offsets, candidates = cluster_patches(faces, labels, NUM_CLUSTERS)
+    offsets, candidates, _ = patches
     eps = float(jnp.finfo(dtype).eps)
     host = vertices.astype(dtype).astype(np.float64)
     for i, (target, k) in enumerate(zip(targets.astype(dtype).astype(np.float64), clusters, strict=True)):
@@ -70,7 +94,7 @@ def test_ties_go_to_the_lowest_face(backend):
     vertices, faces, labels = _sphere_with_clusters()
     vertex = 7
     k = labels[vertex]
-    project = PatchProjector(jnp.asarray(vertices), faces, labels, NUM_CLUSTERS, backend)
+    project = PatchProjector(jnp.asarray(vertices), faces, ClusterPatches.of(faces, labels, NUM_CLUSTERS), backend)
     positions, found, _ = project(vertices[vertex][None] * 1.2, np.array([k]))
     around = np.flatnonzero(np.any(faces == vertex, axis=1))
     assert found[0] == around.min()
@@ -81,8 +105,9 @@ def test_backends_agree():
     # One target per cluster (the remesher's call without clusters): row k is cluster k's.
     vertices, faces, labels = _sphere_with_clusters()
     targets = np.random.default_rng(2).normal(size=(NUM_CLUSTERS, 3))
-    jax_out, warp_out = (PatchProjector(jnp.asarray(vertices), faces, labels, NUM_CLUSTERS, backend)(targets) for backend in BACKENDS)
+    patches = ClusterPatches.of(faces, labels, NUM_CLUSTERS)
+    jax_out, warp_out = (PatchProjector(jnp.asarray(vertices), faces, patches, backend)(targets) for backend in BACKENDS)
     np.testing.assert_array_equal(jax_out[1], warp_out[1])
     np.testing.assert_allclose(jax_out[0], warp_out[0], atol=1e-14)
-    offsets, candidates = cluster_patches(faces, labels, NUM_CLUSTERS)
+    offsets, candidates, _ = patches
     assert all(jax_out[1][k] in candidates[offsets[k] : offsets[k + 1]] for k in range(NUM_CLUSTERS))
