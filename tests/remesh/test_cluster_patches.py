@@ -111,3 +111,17 @@ def test_backends_agree():
     np.testing.assert_allclose(jax_out[0], warp_out[0], atol=1e-14)
     offsets, candidates, _ = patches
     assert all(jax_out[1][k] in candidates[offsets[k] : offsets[k + 1]] for k in range(NUM_CLUSTERS))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_cluster_s_point_stays_on_its_own_sheet(backend):
+    # Two parallel squares 0.01 apart, one cluster each: a target nearer the other sheet still
+    # lands on its cluster's own sheet (the closest point of the whole surface would not).
+    square = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    vertices = np.concatenate([square, square + [0.0, 0.0, 0.01]])
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    labels = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+    project = PatchProjector(jnp.asarray(vertices), faces, ClusterPatches.of(faces, labels, 2), backend)
+    positions, found, _ = project(np.array([[0.3, 0.6, 0.008], [0.3, 0.6, 0.002]]), np.array([0, 1]))
+    np.testing.assert_allclose(positions, [[0.3, 0.6, 0.0], [0.3, 0.6, 0.01]], atol=1e-15)
+    assert found[0] in (0, 1) and found[1] in (2, 3)
