@@ -12,8 +12,8 @@ the projections of a remesh.
 The nearest candidate comes from a Warp kernel (``warp_ffi.remesh.patch_closest_faces``, which
 skips the faces whose bounding sphere rules them out) or a JAX twin over the flattened (point,
 candidate) pairs; both measure exact distances in the working dtype and give ties to the lowest
-face index. The point and its barycentric weights on the
-chosen triangle come from :func:`geomjax._geometry.closest_point_on_triangle` on both backends.
+face index. The point and its barycentric weights on the chosen triangle come from
+:func:`geomjax._geometry.closest_point_on_triangle` on both backends.
 """
 
 from __future__ import annotations

@@ -162,10 +162,10 @@ def remeshing(
        in the input frame and dtype.
 
     The output is manifold in the sense that every edge has at most two triangles, and every
-    vertex lies on the source surface (on its cluster's patch). A closed input stays closed and keeps its Euler
-    characteristic (genus) whenever the clusters can resolve its thin parts and tunnels; where
-    they cannot, a :class:`RemeshTopologyWarning` says so (use more clusters). Output vertices
-    are not welded by position.
+    vertex lies on the source surface (on its cluster's patch). A closed input stays closed and
+    keeps its Euler characteristic (genus) whenever the clusters can resolve its thin parts and
+    tunnels; where they cannot, a :class:`RemeshTopologyWarning` says so (use more clusters).
+    Output vertices are not welded by position.
 
     Args:
         mesh_vertices: ``(V, 3)`` float32 or float64, finite, ``V >= 3``. Computations run in
@@ -191,8 +191,8 @@ def remeshing(
             vertices on a hash grid of centroids and measures each point against its patch's
             triangles in a kernel (both CPU cores); the JAX path compares every vertex with
             every centroid and measures every (point, patch triangle) pair at once (a reference
-            for small meshes). Both share the seeding and the topology
-            step (host NumPy). ``None`` picks Warp on every platform when warp-lang is installed
+            for small meshes). Both share the seeding and the topology step (host NumPy).
+            ``None`` picks Warp on every platform when warp-lang is installed
             (``benchmarks/bench_sampling_remesh.py`` measures it on CPU), JAX otherwise.
 
     Returns:
@@ -205,9 +205,10 @@ def remeshing(
             runs eagerly: call it outside ``jit``).
         ValueError: bad shapes, ``V < 3``, ``K`` outside ``[3, V]``, indices out of range,
             non-finite vertices, coordinates beyond the square root of the dtype's range, a
-            non-positive or non-finite density, out-of-range options, a zero-area surface, an input split across processes (a multi-host array: this runs
-            on one host; replicated arrays and arrays on several local devices are read from
-            one device, also under ``jax.set_mesh``).
+            non-positive or non-finite density, out-of-range options, a zero-area surface, an
+            input split across processes (a multi-host array: this runs on one host; replicated
+            arrays and arrays on several local devices are read from one device, also under
+            ``jax.set_mesh``).
         RuntimeError: no triangle survives the topology step.
         KeyError: unknown ``implementation``.
         ImportError: ``implementation="warp"`` without warp-lang.
