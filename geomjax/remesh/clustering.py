@@ -462,7 +462,7 @@ def _checked_density(vertex_density, vertices: jax.Array) -> np.ndarray | None:
 def _doubled_normals(x: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each face's first corner and ``(b - a) x (c - a)`` (float64, ``(F, 3)`` each): areas and
     planes, once for the masses and the quadrics."""
-    a, b, c = (x[faces[:, k]].astype(np.float64) for k in range(3))
+    a, b, c = (x[faces[:, k]].astype(np.float64, copy=False) for k in range(3))
     return a, row_cross(b - a, c - a)
 
 
