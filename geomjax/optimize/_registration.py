@@ -112,7 +112,7 @@ def register_surface(
             vertex reaches at zero and the normal equations regular (default ``1e-10`` in
             float64, ``1e-6`` in float32; ``0`` fails where the template leaves nodes free).
         solver: an optimistix least-squares solver (default ``optimistix.Dogleg`` on the normal
-            equations, ``lineax.Normal(lineax.Cholesky())``, with tolerances ``1e-5`` in float32,
+            equations, ``lineax.Normal(lineax.SVD())``, with tolerances ``1e-5`` in float32,
             ``1e-8`` in float64; plain ``optimistix.GaussNewton`` can cycle between two
             assignments of nearest faces and never meet its tolerance).
         max_steps, throw, return_solution: as for
@@ -175,8 +175,12 @@ def register_surface(
         # A trust region: the nearest faces change from step to step, and plain Gauss-Newton can
         # hop between two face assignments forever; a step that raises the loss is refused here.
         # Normal equations: the lattice has few unknowns and the residuals are many (a QR of the
-        # tall Jacobian costs several times more per step).
-        solver = optx.Dogleg(rtol=tolerance, atol=tolerance, linear_solver=lx.Normal(lx.Cholesky()))
+        # tall Jacobian costs several times more per step). Solved by SVD, not Cholesky: near the
+        # optimum the normal matrix can be singular to rounding (the squared condition number),
+        # where Cholesky returns NaN steps and the trust region shrinks without end (seen on JAX
+        # 0.12 with a small strain weight); its size is the lattice's, so the SVD costs little
+        # next to forming the matrix.
+        solver = optx.Dogleg(rtol=tolerance, atol=tolerance, linear_solver=lx.Normal(lx.SVD()))
     options = dict(
         origin=origin, extent=extent, basis=basis, strain_weight=strain_weight, bending_weight=bending_weight,
         regularization=regularization, implementation=implementation, brute_force=brute_force,
