@@ -513,6 +513,9 @@ def nearest_centroids(
 
 # Patch queries are heavy (hundreds of faces each): chunks this small still pay their launch.
 PATCH_MIN_CHUNK = 64
+# Candidate faces per launch chunk: on small patches (a few faces each) a single launch beats
+# the split over the cores.
+PATCH_CHUNK_FACES = 4096
 # Slack of the bounding-sphere pruning, in units of the working dtype's epsilon times the
 # magnitudes compared: it covers the rounding of the centre distances and of the bounds.
 PATCH_BOUND_SLACK = 64
@@ -597,6 +600,7 @@ class PatchSearch:
         wp.launch(_face_sphere(self.dtype), dim=faces.shape[0], inputs=[vertices_wp, faces_wp], outputs=[centres, radii], device=device)
         slack: wp.array = wp.array(np.array([PATCH_BOUND_SLACK * np.finfo(self.dtype).eps], self.dtype), dtype=scalar, device=device)
         self.arrays = [vertices_wp, faces_wp, as_int(offsets), as_int(candidates), centres, radii, slack]
+        self.min_chunk = max(PATCH_MIN_CHUNK, round(PATCH_CHUNK_FACES * (offsets.size - 1) / max(candidates.size, 1)))
 
 
 def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.ndarray) -> np.ndarray:
@@ -617,5 +621,5 @@ def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.nda
         radii,
         slack,
     ]
-    launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=PATCH_MIN_CHUNK)
+    launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=search.min_chunk)
     return found.numpy()
