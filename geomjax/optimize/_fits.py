@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
@@ -45,10 +46,13 @@ def _with_penalty(misfit: jax.Array, params: jax.Array, regularization: float) -
     return jnp.concatenate([misfit.reshape(-1), jnp.sqrt(jnp.asarray(regularization, params.dtype)) * params.reshape(-1)])
 
 
-def _check_regularization(regularization) -> float:
-    if isinstance(regularization, bool) or not isinstance(regularization, (int, float)) or not regularization >= 0 or regularization == float("inf"):
-        raise ValueError(f"regularization must be a finite real >= 0, got {regularization!r}")
-    return float(regularization)
+def check_weight(name: str, value, *, op_name: str | None = None) -> float:
+    """A fit's weight as a float: a finite real ``>= 0`` (NumPy scalars too), else ``ValueError``
+    (its message prefixed with ``op_name``, when given)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or not 0 <= value < float("inf"):
+        prefix = f"{op_name}: " if op_name else ""
+        raise ValueError(f"{prefix}{name} must be a finite real >= 0, got {value!r}")
+    return float(value)
 
 
 def _check_targets(points: jax.Array, target_points) -> jax.Array:
@@ -135,7 +139,7 @@ def fit_free_form_deformation(
     """
     points = jnp.asarray(points)
     target_points = _check_targets(points, target_points)
-    regularization = _check_regularization(regularization)
+    regularization = check_weight("regularization", regularization)
     resolution = tuple(int(n) for n in resolution)
     if points.ndim != 2 or len(resolution) != points.shape[-1]:
         raise ValueError(f"resolution must give one node count per coordinate of points {points.shape}, got {resolution}")
@@ -202,7 +206,7 @@ def fit_morph(
     """
     points = jnp.asarray(points)
     target_points = _check_targets(points, target_points)
-    regularization = _check_regularization(regularization)
+    regularization = check_weight("regularization", regularization)
     control_points = jnp.asarray(control_points)
 
     def residuals(displacements, args):

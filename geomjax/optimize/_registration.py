@@ -36,7 +36,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
-import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
@@ -48,6 +47,7 @@ from ..energy.bending import bending_residuals
 from ..energy.strain import strain_residuals
 from ..mesh import Mesh
 from ..query.bvh import bvh_vertices32, closest_face_tree, closest_faces_brute_force, search_closest_faces
+from ._fits import check_weight
 from ._outcome import fitted
 
 __all__ = ["register_surface"]
@@ -163,7 +163,8 @@ def register_surface(
     if regularization is None:
         regularization = _DEFAULT_REGULARIZATION.get(jnp.dtype(dtype), 1e-6)
     strain_weight, bending_weight, regularization = (
-        _check_weight(name, w) for name, w in (("strain_weight", strain_weight), ("bending_weight", bending_weight), ("regularization", regularization))
+        check_weight(name, w, op_name=_NAME)
+        for name, w in (("strain_weight", strain_weight), ("bending_weight", bending_weight), ("regularization", regularization))
     )
     hinges = template.hinges if bending_weight > 0 else None
     brute_force = implementation in ("jax", "torch") or not warp_available()
@@ -240,12 +241,6 @@ def registration_residuals(
         return jnp.concatenate(parts)
 
     return residuals
-
-
-def _check_weight(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or not 0 <= value < float("inf"):
-        raise ValueError(f"{_NAME}: {name} must be a finite real >= 0, got {value!r}")
-    return float(value)
 
 
 def _corner_areas(points: jax.Array, faces: jax.Array) -> jax.Array:

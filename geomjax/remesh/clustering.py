@@ -298,9 +298,10 @@ def remesh_with_sources(
     backend = select_implementation(_NAME, options["implementation"], platform=platform_of(vertices)).name
     device = next(iter(vertices.devices()))
     host = np.asarray(vertices)
+    low, high = host.min(axis=0), host.max(axis=0)
     # Steps 4 to 6 measure the output in the input frame: areas and distances there square the
     # coordinates.
-    largest = float(np.max(np.abs(host)))
+    largest = float(np.max(np.maximum(-low, high)))
     if largest > (limit := math.sqrt(float(np.finfo(dtype).max)) / 4):
         raise ValueError(
             f"{_NAME}: vertex coordinates must be at most {limit:.3g} in magnitude in {dtype} (their squares overflow), got {largest:.3g}: rescale the mesh"
@@ -310,7 +311,6 @@ def remesh_with_sources(
     projector = _background().submit(SurfaceProjector, vertices, faces, backend, _NAME) if reference else None
 
     # 1. Normalised frame, areas and integration masses.
-    low, high = host.min(axis=0), host.max(axis=0)
     centre = (low + high) / 2
     scale = float(np.max(high - low)) / 2
     if scale == 0.0:
