@@ -76,12 +76,13 @@ class ClusterQuadrics(NamedTuple):
         step[np.linalg.norm(step, axis=1) > limit] = 0.0
         return start + step
 
-    def free_moves(self, moves: np.ndarray) -> np.ndarray:
-        """``moves (K, 3)`` restricted to each cluster's weak eigendirections (eigenvalue below
-        ``MOVEMENT_THRESHOLD`` times the largest): in the plane of a flat cluster, along a
-        crease, not at all at a corner or tip."""
-        free = self.weights < MOVEMENT_THRESHOLD * self.weights[:, -1:]
-        return np.einsum("kij,kj->ki", self.basis, free * np.einsum("kji,kj->ki", self.basis, moves))
+    def free_moves(self, moves: np.ndarray, clusters: np.ndarray | None = None) -> np.ndarray:
+        """``moves (M, 3)`` of ``clusters (M,)`` (default: all ``K``, in order) restricted to
+        each cluster's weak eigendirections (eigenvalue below ``MOVEMENT_THRESHOLD`` times the
+        largest): in the plane of a flat cluster, along a crease, not at all at a corner or tip."""
+        weights, basis = (self.weights, self.basis) if clusters is None else (self.weights[clusters], self.basis[clusters])
+        free = weights < MOVEMENT_THRESHOLD * weights[:, -1:]
+        return np.einsum("kij,kj->ki", basis, free * np.einsum("kji,kj->ki", basis, moves))
 
     def crease_strength(self) -> np.ndarray:
         """``(K,)`` second eigenvalue over the largest: 0 on a flat cluster, up to 1 at a corner."""

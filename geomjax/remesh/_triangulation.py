@@ -23,6 +23,7 @@ __all__ = [
     "nondegenerate",
     "overturned_vertices",
     "relaxation_targets",
+    "relocate_poor_corners",
     "remove_degree_three",
     "row_cross",
     "row_dot",
@@ -43,6 +44,10 @@ DEGREE_THREE_MAX_HEIGHT = 0.1
 # Triangles with a smaller angle (degrees) lose their shortest edge in the final clean-up.
 MIN_ANGLE_DEGREES = 12.0
 COLLAPSE_ROUNDS = 4
+# The corners of the triangles still below MIN_ANGLE_DEGREES after the collapses try moving
+# these fractions of the way to each neighbour, for this many rounds.
+RELOCATION_STEPS = (0.1, 0.25, 0.5)
+RELOCATION_ROUNDS = 4
 
 
 def row_dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -403,6 +408,94 @@ def _first_collapse(x, triangles, star, corners, fixed, strength, touched):
             if np.all(row_dot(old_normal, new_normal) > 0) and np.min(min_angles(x, new)) > poor_angle:
                 return moved, new, sorted(shared)
     return None
+
+
+def relocate_poor_corners(surface_points: tuple[np.ndarray, ...], triangles: np.ndarray, fixed: np.ndarray, place) -> tuple[np.ndarray, ...]:
+    """Move the corners of the triangles whose smallest angle is below ``MIN_ANGLE_DEGREES`` to
+    where their triangles are better.
+
+    What the collapses leave is a needle that no collapse can improve, such as one across a thin
+    strip of the surface (the end of a tapered blade) whose two long edges start at the same
+    vertex: the fix is to move the short edge's ends apart along the strip. Each corner tries the
+    points ``RELOCATION_STEPS`` of the way to each of its neighbours, put back on the surface by
+    ``place(vertices (M,), starts (M, 3), moves (M, 3)) -> (points, source faces, weights)``;
+    it takes the one that makes the smallest angle of its triangles largest, if that is better
+    than where it is and turns no triangle over. The moving corners of a round share no
+    triangle (a move changes only its own triangles, so each is judged exactly); ``fixed``
+    (boundary) corners stay.
+
+    ``surface_points`` is ``(positions (V, 3), source faces (V,), weights (V, 3))``; returns them
+    updated.
+    """
+    positions, *rest = surface_points
+    for _ in range(RELOCATION_ROUNDS):
+        angles = min_angles(positions, triangles)
+        poor = np.flatnonzero(angles < MIN_ANGLE_DEGREES)
+        poor = poor[np.argsort(angles[poor])]
+        corners = np.setdiff1d(triangles[poor], np.flatnonzero(fixed))
+        if corners.size == 0:
+            break
+        corner_faces = _faces_of(triangles, corners)
+        # Every (corner, neighbour, step) candidate.
+        owners, start, move = [], [], []
+        for corner in corners.tolist():
+            neighbours = np.setdiff1d(triangles[corner_faces[corner]], [corner])
+            for step in RELOCATION_STEPS:
+                owners += [corner] * neighbours.size
+                start.append(np.broadcast_to(positions[corner], (neighbours.size, 3)))
+                move.append(step * (positions[neighbours] - positions[corner]))
+        vertex = np.asarray(owners)
+        placed = place(vertex, np.concatenate(start), np.concatenate(move))
+        # Each corner's best candidate, if it beats the corner's current position.
+        best: dict[int, tuple[float, int]] = {}
+        for corner in corners.tolist():
+            star = triangles[corner_faces[corner]]
+            rows = np.flatnonzero(vertex == corner)
+            score = _star_min_angle(positions, star, corner, placed[0][rows])
+            if score.max() > _star_min_angle(positions, star, corner, positions[corner][None])[0]:
+                best[corner] = (float(score.max()), int(rows[np.argmax(score)]))
+        # Worst triangle first, its corner with the best move; no two movers in one triangle.
+        blocked: set[int] = set()
+        chosen = []
+        for face in poor.tolist():
+            options = [corner for corner in triangles[face].tolist() if corner in best and corner not in blocked]
+            if options:
+                corner = max(options, key=lambda c: best[c][0])
+                chosen.append(corner)
+                blocked.update(triangles[corner_faces[corner]].reshape(-1).tolist())
+        if not chosen:
+            break
+        rows = np.array([best[corner][1] for corner in chosen], int)
+        surface_points = tuple(np.array(array) for array in (positions, *rest))
+        for array, new in zip(surface_points, placed):
+            array[chosen] = new[rows]
+        positions, *rest = surface_points
+    return (positions, *rest)
+
+
+def _faces_of(triangles: np.ndarray, vertices: np.ndarray) -> dict[int, np.ndarray]:
+    """Each of ``vertices``: the indices of its triangles."""
+    face, slot = np.nonzero(np.isin(triangles, vertices))
+    corner = triangles[face, slot]
+    order = np.argsort(corner, kind="stable")
+    keys, starts = np.unique(corner[order], return_index=True)
+    return {int(key): part for key, part in zip(keys, np.split(face[order], starts[1:]))}
+
+
+def _star_min_angle(positions: np.ndarray, star: np.ndarray, corner: int, candidates: np.ndarray) -> np.ndarray:
+    """``(C,)``: the smallest angle (degrees) of the triangles ``star`` with ``corner`` at each
+    candidate position, or -1 where one of them turns over."""
+    x = positions.astype(np.float64)
+    old = x[star]  # (S, 3, 3)
+    new = np.broadcast_to(old, (candidates.shape[0], *old.shape)).copy()
+    at = star == corner
+    new[:, at] = candidates.astype(np.float64)[:, None]
+    old_normal = row_cross(old[:, 1] - old[:, 0], old[:, 2] - old[:, 0])
+    new_normal = np.cross(new[..., 1, :] - new[..., 0, :], new[..., 2, :] - new[..., 0, :])
+    flat = new.reshape(-1, 3, 3)
+    angles = np.degrees(np.minimum.reduce([_corner_angle(flat[:, k], flat[:, (k + 1) % 3], flat[:, (k + 2) % 3]) for k in range(3)])).reshape(new.shape[:2])
+    turned = np.any(np.einsum("csd,sd->cs", new_normal, old_normal) <= 0, axis=1)
+    return np.where(turned, -1.0, angles.min(axis=1))
 
 
 def _neighbours(triangles: np.ndarray, faces: set[int]) -> set[int]:
