@@ -40,6 +40,7 @@ class ClusterQuadrics(NamedTuple):
     rhs: np.ndarray  # (K, 3) float64
     weights: np.ndarray  # (K, 3) eigenvalues of Q, ascending
     basis: np.ndarray  # (K, 3, 3) the eigenvectors, as columns
+    normals: np.ndarray  # (K, 3) sum a n: the cluster's mean normal times its area
 
     @classmethod
     def of(cls, first_corners: np.ndarray, doubled_normals: np.ndarray, face_area: np.ndarray, patches: ClusterPatches) -> ClusterQuadrics:
@@ -51,13 +52,18 @@ class ClusterQuadrics(NamedTuple):
         # corner in the cluster.
         third = face_area / 3
         offset = row_dot(normal, first_corners)
-        entries = np.stack([third * normal[:, i] * normal[:, j] for i, j in zip(_ROWS, _COLUMNS)] + [third * offset * normal[:, k] for k in range(3)], axis=1)
+        entries = np.stack(
+            [third * normal[:, i] * normal[:, j] for i, j in zip(_ROWS, _COLUMNS)]
+            + [third * offset * normal[:, k] for k in range(3)]
+            + [third * normal[:, k] for k in range(3)],
+            axis=1,
+        )
         sums = patches.incidence(face_area.size) @ entries
         num = patches.offsets.size - 1
         quadric = np.zeros((num, 3, 3))
         quadric[:, _ROWS, _COLUMNS] = quadric[:, _COLUMNS, _ROWS] = sums[:, : _ROWS.size]
-        rhs = sums[:, _ROWS.size :]
-        return cls(quadric, rhs, *np.linalg.eigh(quadric))
+        rhs, normals = sums[:, _ROWS.size : _ROWS.size + 3], sums[:, _ROWS.size + 3 :]
+        return cls(quadric, rhs, *np.linalg.eigh(quadric), normals)
 
     def snap(self, start: np.ndarray, limit: float) -> np.ndarray:
         """``(K, 3)``: from ``start``, each cluster's least-squares point of its planes.

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 __all__ = [
+    "bending_density",
     "boundary_vertices",
     "collapse_poor_triangles",
     "degenerate_vertices",
@@ -235,6 +236,27 @@ def boundary_vertices(triangles: np.ndarray, num_vertices: int) -> np.ndarray:
     fixed[tail[boundary]] = True
     fixed[head[boundary]] = True
     return fixed
+
+
+def bending_density(positions: np.ndarray, triangles: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """``(V,)`` relaxation density ``1 + (s / mean s)^2`` that gathers vertices where the surface
+    bends away from the triangles.
+
+    ``s`` is the largest sagitta estimate ``|(b - a) . (n_b - n_a)| / 8`` of a vertex's edges
+    (the height of an arc through ``a`` and ``b`` with unit normals ``n_a``, ``n_b`` over its
+    chord, exact to second order on a circle); ``normals`` ``(V, 3)`` are surface normals at the
+    vertices, of any length. The mean is over the vertices of ``triangles``; a flat surface has
+    density 1 everywhere.
+    """
+    x = positions.astype(np.float64)
+    unit = _unit(normals.astype(np.float64))
+    tail, head = triangles.reshape(-1), np.roll(triangles, -1, axis=1).reshape(-1)
+    sagitta = np.abs(row_dot(x[head] - x[tail], unit[head] - unit[tail])) / 8
+    largest = np.zeros(x.shape[0])
+    np.maximum.at(largest, tail, sagitta)
+    np.maximum.at(largest, head, sagitta)
+    mean = largest[np.unique(triangles)].mean()
+    return 1 + (largest / mean) ** 2 if mean > 0 else np.ones(x.shape[0])
 
 
 def relaxation_targets(positions: np.ndarray, triangles: np.ndarray, vertex_rho: np.ndarray | None, fixed: np.ndarray) -> np.ndarray:

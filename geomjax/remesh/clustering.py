@@ -26,6 +26,7 @@ from ._patch_projection import PatchProjector
 from ._quadrics import ClusterQuadrics
 from ._surface_clusters import ClusterPatches, MeshEdges, cluster_means, connected_clusters, mend_tears
 from ._triangulation import (
+    bending_density,
     boundary_vertices,
     collapse_poor_triangles,
     degenerate_vertices,
@@ -39,6 +40,7 @@ from ._triangulation import (
     remove_degree_three,
     row_cross,
     row_dot,
+    row_norm,
     topology,
 )
 
@@ -51,6 +53,9 @@ MAX_HASH_GRID_RESOLUTION = 256
 RADIUS_SCALE_CAP = 12.0  # the search radius never exceeds max(s, 12) cluster spacings
 MASS_FLOOR = float(np.finfo(np.float32).tiny)
 RELAXATION_ITERATIONS = 4  # surface relaxation rounds after the clustering (see remeshing)
+# Relaxation keeps each vertex within this many cluster spacings of its cluster's point: it
+# shapes the triangles, it must not drag a vertex off the feature its cluster holds (a tip).
+RELAXATION_REACH = 0.5
 GRAPH_LLOYD_ROUNDS = 2  # Lloyd rounds on the surface's edge graph after the Euclidean ones
 TEAR_REPAIR_ROUNDS = 12  # rounds of mending fins and pinches of the cluster layout
 
@@ -150,8 +155,13 @@ def remeshing(
        optimal-Delaunay-triangulation step: each interior vertex moves towards the
        mass-weighted mean of the circumcentres of its triangles (the midpoint of the longest
        edge for an obtuse one), within the directions in which its cluster's triangles are
-       flat (in the tangent plane, along a crease, not at a tip or corner), and is projected
-       onto its cluster's patch again; a move that would overturn a triangle is undone.
+       flat (in the tangent plane, along a crease, not at a tip or corner), at most half a
+       cluster spacing from its point of step 5 in all, and is projected onto its cluster's
+       patch again; a move that would overturn a triangle is undone. A triangle's mass is its
+       area times the mean over its corners of ``1 + (s / mean s)^2`` (times the density, if
+       given), ``s`` a vertex's largest edge sagitta estimated from its cluster's mean normal
+       (:func:`geomjax.remesh._triangulation.bending_density`): vertices gather where the
+       surface bends away from the triangles.
        Boundary vertices stay. A complete flip pass follows; then each interior vertex of
        degree three that lies near the plane of its neighbours is removed, and the shortest
        edge of each triangle with an angle below 12 degrees is collapsed into its endpoint on
@@ -385,12 +395,16 @@ def remesh_with_sources(
     # 6. Relaxation on the surface. Flips and the removals below touch interior edges and
     # vertices only, so the boundary vertices stay those of step 5.
     fixed = boundary_vertices(triangles, n_clusters)
+    anchors = positions.astype(np.float64)
     for _ in range(relaxation_iterations):
         # One round per step: the next steps continue the flips, the final pass completes them.
         triangles = delaunay_flips(positions, triangles, rounds=1)
-        vertex_rho = None if rho is None else np.einsum("vk,vk->v", barycentric, rho[faces[source_faces]])
+        vertex_rho = bending_density(positions, triangles, quadrics.normals)
+        if rho is not None:
+            vertex_rho *= np.einsum("vk,vk->v", barycentric, rho[faces[source_faces]])
         targets = relaxation_targets(positions, triangles, vertex_rho, fixed)
-        moved = project((positions + quadrics.free_moves(targets - positions)).astype(dtype))
+        targets = _within_reach(anchors, positions + quadrics.free_moves(targets - positions), RELAXATION_REACH * spacing * scale)
+        moved = project(targets.astype(dtype))
         # A step that would overturn a triangle is undone for that triangle's vertices.
         undo = overturned_vertices(positions, moved[0], triangles)
         positions = np.where(undo[:, None], positions, moved[0])
@@ -416,6 +430,13 @@ def remesh_with_sources(
 @functools.cache
 def _background() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=1, thread_name_prefix="geomjax-remesh")
+
+
+def _within_reach(anchors: np.ndarray, points: np.ndarray, reach: float) -> np.ndarray:
+    """``points`` ``(V, 3)`` pulled back to within ``reach`` of their ``anchors``."""
+    offset = points - anchors
+    distance = row_norm(offset)
+    return anchors + offset * np.minimum(1.0, reach / np.maximum(distance, np.finfo(np.float64).tiny))[:, None]
 
 
 def _surviving(triangles: np.ndarray, positions: np.ndarray, step: str) -> np.ndarray:

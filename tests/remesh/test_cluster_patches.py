@@ -50,13 +50,16 @@ def test_quadrics_sum_each_cluster_s_corner_planes():
     # A plain loop: each corner of each face adds a third of the face's area times its plane.
     expected = np.zeros((NUM_CLUSTERS, 3, 3))
     expected_rhs = np.zeros((NUM_CLUSTERS, 3))
+    expected_normals = np.zeros((NUM_CLUSTERS, 3))
     for f in range(faces.shape[0]):
         n = doubled[f] / np.linalg.norm(doubled[f])
         for vertex in faces[f]:
             expected[labels[vertex]] += area[f] / 3 * np.outer(n, n)
             expected_rhs[labels[vertex]] += area[f] / 3 * n * np.dot(n, corners[f, 0])
+            expected_normals[labels[vertex]] += area[f] / 3 * n
     np.testing.assert_allclose(quadrics.quadric, expected, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(quadrics.rhs, expected_rhs, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(quadrics.normals, expected_normals, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(quadrics.quadric @ quadrics.basis, quadrics.basis * quadrics.weights[:, None, :], atol=1e-14)
 
 

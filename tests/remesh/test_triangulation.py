@@ -4,7 +4,8 @@ and orientation computations."""
 import numpy as np
 
 from benchmarks import _quality as quality
-from geomjax.remesh._triangulation import MIN_ANGLE_DEGREES, boundary_vertices, relocate_poor_corners
+from geomjax import icosphere
+from geomjax.remesh._triangulation import MIN_ANGLE_DEGREES, bending_density, boundary_vertices, relocate_poor_corners
 
 
 def _grid(n):
@@ -59,3 +60,32 @@ def test_corners_that_cannot_move_stay():
 
     moved, _, _ = relocate_poor_corners(surface, faces, boundary_vertices(faces, len(points)), pinned)
     assert np.array_equal(moved, points)
+
+
+def test_bending_density_follows_the_arc_heights_over_the_edges():
+    # On a sphere of radius R a chord of length L stands R - sqrt(R^2 - L^2 / 4) below its arc;
+    # with the exact normals the estimate is L^2 / (8 R), the same to relative order (L / R)^2.
+    sphere = icosphere(2)
+    radius = 3.0
+    points, faces = np.asarray(sphere.points, np.float64) * radius, np.asarray(sphere.cells)
+    tail, head = faces.reshape(-1), np.roll(faces, -1, axis=1).reshape(-1)
+    chord = np.linalg.norm(points[head] - points[tail], axis=1)
+    height = radius - np.sqrt(radius**2 - chord**2 / 4)
+    largest = np.zeros(len(points))
+    np.maximum.at(largest, tail, height)
+    expected = 1 + (largest / largest.mean()) ** 2
+    assert np.ptp(expected) > 0.1  # the icosphere's edges differ in length
+    density = bending_density(points, faces, 5.0 * points)  # normals of any length
+    np.testing.assert_allclose(density, expected, rtol=2 * (chord.max() / radius) ** 2)
+
+
+def test_bending_density_ignores_flat_directions():
+    plane, faces = _grid(5)
+    np.testing.assert_array_equal(bending_density(plane, faces, np.tile([0.0, 0.0, 2.0], (len(plane), 1))), 1.0)
+    # A quarter cylinder, unevenly divided around its axis (grid columns), evenly along it
+    # (grid rows): it bends across the axis only, so stretching it along the axis changes nothing.
+    around = np.array([0.0, 0.1, 0.3, 0.8, np.pi / 2])[plane[:, 1].astype(int)]
+    normals = np.stack([np.cos(around), np.sin(around), np.zeros_like(around)], axis=1)
+    densities = [bending_density(normals + [0.0, 0.0, step] * plane[:, :1], faces, normals) for step in (0.2, 5.0)]
+    assert np.ptp(densities[0]) > 0.5
+    np.testing.assert_allclose(densities[0], densities[1], rtol=1e-12)
