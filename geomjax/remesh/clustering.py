@@ -364,6 +364,9 @@ def remesh_with_sources(
         spread = math.sqrt(float(np.average(generator_density, weights=vertex_area[vertex_area > 0]) / generator_density.min()))
     radius = min(search_radius_scale * spread, max(search_radius_scale, RADIUS_SCALE_CAP)) * spacing
     centroids = x[seeds]
+    # The edge graph of the graph rounds below is built on the background thread while the Lloyd
+    # iterations run (their Warp kernels release the GIL between the host steps).
+    edge_graph = None if projector is not None else _background().submit(MeshEdges.of, x, faces)
     if backend == "warp":
         centroids, labels = _lloyd_warp(x, mass, centroids, max_iterations, radius, resolution, device)
     else:
@@ -374,7 +377,8 @@ def remesh_with_sources(
         positions, source_faces, barycentric = projector.result()((centroids * scale + centre).astype(dtype))
         triangles = _surviving(distinct_triangles(labels[faces]), positions, "topology reconstruction")
         return _result(positions, triangles, source_faces, barycentric, index_dtype, device)
-    edges = MeshEdges.of(x, faces)
+    assert edge_graph is not None  # submitted unless the reference returned above
+    edges = edge_graph.result()
     centroids, labels, distance = connected_clusters(edges, x, mass, centroids, labels, GRAPH_LLOYD_ROUNDS)
     centroids, labels = mend_tears(edges, x, faces, mass, centroids, labels, distance, TEAR_REPAIR_ROUNDS)
 
