@@ -33,6 +33,7 @@ from ._triangulation import (
     delaunay_flips,
     distinct_triangles,
     drop_crowded_edges,
+    fold_flips,
     nondegenerate,
     overturned_vertices,
     relaxation_targets,
@@ -166,7 +167,12 @@ def remeshing(
        degree three that lies near the plane of its neighbours is removed, and the shortest
        edge of each triangle with an angle below 12 degrees is collapsed into its endpoint on
        the stronger feature, where that keeps the topology, turns no triangle over and
-       improves the triangles. The corners of the triangles still below 12 degrees (a needle
+       improves the triangles. Then the 16 pairs of triangles that stand farthest off the
+       surface by an estimate from their clusters' normals, and whose other diagonal is
+       estimated 10% closer, are measured (distances from their centroids and diagonals'
+       midpoints to the patches), and flipped where the other diagonal is measured 10% closer
+       and both new triangles keep angles of 20 degrees or more. The corners of the triangles
+       still below 12 degrees (a needle
        across a strip narrower than the spacing, which no collapse improves) then try points
        0.1, 0.25 and 0.5 of the way to each neighbour, within the same directions and back on
        their patches, and take the one that most raises the smallest angle of their triangles
@@ -419,6 +425,7 @@ def remesh_with_sources(
         # needles and caps (at creases and tips, which flips and moves keep) lose an edge.
         triangles = remove_degree_three(positions, delaunay_flips(positions, triangles), n_clusters)
         triangles = collapse_poor_triangles(positions, triangles, fixed, quadrics.crease_strength())
+        triangles = fold_flips(positions, triangles, quadrics.normals, lambda points, vertices: row_norm(points - project(points.astype(dtype), vertices)[0]))
 
         # The needles that no collapse removes: their corners move on their patches (along
         # the crease, for a vertex on one).

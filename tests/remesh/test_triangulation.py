@@ -5,7 +5,7 @@ import numpy as np
 
 from benchmarks import _quality as quality
 from geomjax import icosphere
-from geomjax.remesh._triangulation import MIN_ANGLE_DEGREES, bending_density, boundary_vertices, relocate_poor_corners
+from geomjax.remesh._triangulation import MIN_ANGLE_DEGREES, bending_density, boundary_vertices, fold_flips, relocate_poor_corners, topology
 
 
 def _grid(n):
@@ -89,3 +89,59 @@ def test_bending_density_ignores_flat_directions():
     densities = [bending_density(normals + [0.0, 0.0, step] * plane[:, :1], faces, normals) for step in (0.2, 5.0)]
     assert np.ptp(densities[0]) > 0.5
     np.testing.assert_allclose(densities[0], densities[1], rtol=1e-12)
+
+
+def _ridge(points_xy):
+    """Points on the parabolic ridge z = -x^2 / 2 (running along y), and its unit normals."""
+    x = points_xy[:, 0]
+    points = np.stack([x, points_xy[:, 1], -(x**2) / 2], axis=1)
+    normals = np.stack([x, np.zeros_like(x), np.ones_like(x)], axis=1)
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def _distance_to_ridge(points, _vertices=None):
+    """Distance to z = -x^2 / 2 by a dense search over x (the surface is invariant along y)."""
+    grid = np.linspace(-3, 3, 3001)  # steps of 0.002: distances within 1e-5
+    dx = points[:, :1] - grid
+    dz = points[:, 2:] + grid**2 / 2
+    return np.sqrt(np.min(dx**2 + dz**2, axis=1))
+
+
+def _sampled_height(points, faces):
+    a, b, c = (points[faces[:, k]] for k in range(3))
+    w = np.random.default_rng(0).dirichlet(np.ones(3), 60)
+    samples = np.einsum("sk,fkd->fsd", w, np.stack([a, b, c], axis=1)).reshape(-1, 3)
+    return _distance_to_ridge(samples).max()
+
+
+def test_fold_flips_turn_diagonals_along_the_ridge():
+    # A grid turned by 45 degrees over the ridge: each cell's diagonal runs across the ridge
+    # (along x) or along it (along y). Cut every cell across: the cells on the ridge then pass
+    # 1/8 below it, and turning their diagonals along the ridge brings the whole mesh within
+    # 0.09 (the next cells out, where the ridge bends less).
+    i, j = np.meshgrid(np.arange(-3, 4), np.arange(-3, 4), indexing="ij")
+    xy = np.stack([(i + j) * 0.5, (i - j) * 0.5], axis=-1).reshape(-1, 2)
+    n = 7
+    a = ((i[:-1, :-1] + 3) * n + (j[:-1, :-1] + 3)).reshape(-1)
+    b, c, d = a + n, a + n + 1, a + 1  # corners (i+1, j), (i+1, j+1), (i, j+1)
+    # Corners a and c differ in x only (the across diagonal): triangles (a, b, c) and (a, c, d).
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]).astype(np.int32)
+    points, normals = _ridge(xy)
+    orientation = np.cross(points[faces[:, 1]] - points[faces[:, 0]], points[faces[:, 2]] - points[faces[:, 0]])[:, 2]
+    faces[orientation < 0] = faces[orientation < 0][:, ::-1]
+    before = _sampled_height(points, faces)
+    flipped = fold_flips(points, faces, 3.0 * normals, _distance_to_ridge)
+    after = _sampled_height(points, flipped)
+    assert before > 0.12 and after < 0.09
+    assert topology(flipped) == topology(faces)  # a disk still
+    changed = np.flatnonzero(np.any(np.sort(flipped, axis=1) != np.sort(faces, axis=1), axis=1))
+    assert changed.size >= 2
+    # Every changed triangle has its new edge along the ridge (the two corners with equal x).
+    for face in flipped[changed]:
+        assert any(np.isclose(points[face[k], 0], points[face[(k + 1) % 3], 0]) for k in range(3))
+
+
+def test_fold_flips_leave_a_plane_alone():
+    points, faces = _grid(5)
+    normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    np.testing.assert_array_equal(fold_flips(points, faces, normals, lambda p, v: np.abs(p[:, 2])), faces)
