@@ -1,4 +1,5 @@
-"""Triangle-set operations of the remesher: relabelled triangles, clean-up, flips and relaxation.
+"""Triangle-set operations of the remesher: relabelled triangles, clean-up, relaxation and
+measures (the edge flips are in ``_flips``).
 
 Host NumPy, shared by both backends of :func:`geomjax.remeshing`. Triangles are ``(F, 3)``
 integer arrays of vertex indices, positions ``(V, 3)`` arrays; an edge is keyed
@@ -7,20 +8,16 @@ integer arrays of vertex indices, positions ``(V, 3)`` arrays; an edge is keyed
 
 from __future__ import annotations
 
-import math
-from typing import NamedTuple
-
 import numpy as np
 
 __all__ = [
     "bending_density",
     "boundary_vertices",
+    "corner_angles",
     "collapse_poor_triangles",
     "degenerate_vertices",
-    "delaunay_flips",
     "distinct_triangles",
     "drop_crowded_edges",
-    "fold_flips",
     "half_edges",
     "min_angles",
     "nondegenerate",
@@ -31,28 +28,18 @@ __all__ = [
     "row_cross",
     "row_dot",
     "topology",
+    "unit_rows",
 ]
 
 # A triangle whose doubled area is below this many dtype epsilons of its squared edge lengths
 # has zero area up to rounding (coincident or collinear projected vertices).
 DEGENERATE_EPSILONS = 4.0
-FLIP_ROUNDS = 32  # rounds of parallel Delaunay edge flips per flip pass
-FLIP_TOLERANCE = 1e-6  # radians: opposite angles must exceed pi by this much (co-circular quads stay)
-# Edges between triangles whose normals differ by more than this are creases of the surface:
-# flipping them would cut the crease, so they stay (a flat pair flips at any shape).
-FLIP_MAX_DIHEDRAL_DEGREES = 20.0
 # A degree-three vertex is removed only when it lies this close to the plane of its three
 # neighbours (relative to their longest edge): further out it is a tip of the surface.
 DEGREE_THREE_MAX_HEIGHT = 0.1
 # Triangles with a smaller angle (degrees) lose their shortest edge in the final clean-up.
 MIN_ANGLE_DEGREES = 12.0
 COLLAPSE_ROUNDS = 4
-# Fold flips: of the pairs with the largest estimated heights over the surface, this many are
-# measured; one is flipped where its largest measured distance drops by FOLD_GAIN and both new
-# triangles have no angle below FOLD_MIN_ANGLE_DEGREES.
-FOLD_CHECKED = 16
-FOLD_GAIN = 0.1
-FOLD_MIN_ANGLE_DEGREES = 20.0
 # The corners of the triangles still below MIN_ANGLE_DEGREES after the collapses try moving
 # these fractions of the way to each neighbour, for this many rounds.
 RELOCATION_STEPS = (0.1, 0.25, 0.5)
@@ -154,7 +141,7 @@ def drop_crowded_edges(triangles: np.ndarray, area2: np.ndarray) -> np.ndarray:
     return triangles
 
 
-def _corner_angle(apex: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def corner_angles(apex: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     u, v = a - apex, b - apex
     return np.arctan2(row_norm(row_cross(u, v)), row_dot(u, v))
 
@@ -163,171 +150,10 @@ def min_angles(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """``(F,)`` smallest angle of each triangle, in degrees."""
     x = positions.astype(np.float64)
     a, b, c = (x[triangles[:, k]] for k in range(3))
-    return np.degrees(np.minimum(np.minimum(_corner_angle(a, b, c), _corner_angle(b, c, a)), _corner_angle(c, a, b)))
+    return np.degrees(np.minimum(np.minimum(corner_angles(a, b, c), corner_angles(b, c, a)), corner_angles(c, a, b)))
 
 
-def delaunay_flips(positions: np.ndarray, triangles: np.ndarray, rounds: int = FLIP_ROUNDS) -> np.ndarray:
-    """Flip interior edges whose opposite angles sum to more than pi (Delaunay on the surface).
-
-    Only edges shared by exactly two consistently oriented triangles are flipped, never onto an
-    existing edge, never leaving a vertex with fewer than three edges, and never folding the
-    pair (both new triangles must face like the old ones). Each round flips an independent set
-    of edges (no two share a triangle), the most violating first, for at most ``rounds`` rounds.
-    """
-    x = positions.astype(np.float64)
-    triangles = triangles.copy()
-    stride = np.int64(positions.shape[0])
-    for _ in range(rounds):
-        pairs = _Pairs.of(triangles, stride)
-        u, v, p, q = pairs.u, pairs.v, pairs.p, pairs.q
-        excess = _corner_angle(x[p], x[u], x[v]) + _corner_angle(x[q], x[u], x[v]) - np.pi
-        pairs = pairs.subset(excess > FLIP_TOLERANCE)
-        excess = excess[excess > FLIP_TOLERANCE]
-        u, v, p, q = pairs.u, pairs.v, pairs.p, pairs.q
-        # How far the new diagonal pq passes from the old one uv, relative to its length: 0 for a
-        # flat pair or a sliver (p near uv), tan(dihedral / 2) / 2 across a symmetric crease.
-        across = row_cross(x[v] - x[u], x[q] - x[p])
-        gap = np.abs(row_dot(x[p] - x[u], across)) / np.maximum(row_norm(across), np.finfo(np.float64).tiny)
-        flat = gap <= 0.5 * math.tan(math.radians(FLIP_MAX_DIHEDRAL_DEGREES) / 2) * row_norm(x[q] - x[p])
-        candidates = np.flatnonzero(pairs.flippable(x, stride) & flat)
-        if candidates.size == 0:
-            break
-        pairs.flip(triangles, candidates, -excess[candidates], stride)
-    return triangles
-
-
-def fold_flips(positions: np.ndarray, triangles: np.ndarray, normals: np.ndarray, surface_distance) -> np.ndarray:
-    """Flip the interior edges where the other diagonal lies closer to the surface.
-
-    Delaunay flips choose the diagonal of a pair of triangles by its angles alone; on a curved
-    surface (a saddle, a ridge at an angle to the triangles) the other diagonal can bend with the
-    surface and bring the pair several times closer to it. With surface normals ``n`` at the
-    vertices (``normals`` ``(V, 3)``, any length), the height of the surface over a triangle is
-    estimated by the quadratic through its corners whose height over an edge ``ab`` peaks at
-    the sagitta ``(b - a) . (n_b - n_a) / 8`` (exact to second order on a circle): the largest
-    of the three and 4/9 of their sum (at the centroid). The ``FOLD_CHECKED`` pairs with the
-    largest estimated heights whose other diagonal is estimated ``FOLD_GAIN`` lower are then
-    measured: ``surface_distance(points (M, 3), vertices (M,)) -> (M,)`` is the distance from
-    each point to the surface near a vertex, taken at the triangles' centroids and the
-    diagonals' midpoints, the smallest over the pair's four corners. A pair whose measured
-    largest distance drops by ``FOLD_GAIN`` is flipped if both new triangles keep every angle
-    above ``FOLD_MIN_ANGLE_DEGREES``, under the rules of :func:`delaunay_flips` (independent
-    flips, the largest drop first); one round.
-    """
-    x = positions.astype(np.float64)
-    unit = _unit(normals.astype(np.float64))
-    triangles = triangles.copy()
-    stride = np.int64(positions.shape[0])
-    pairs = _Pairs.of(triangles, stride)
-    u, v, p, q = pairs.u, pairs.v, pairs.p, pairs.q
-    # Signed sagittas of the half-edges, as (F, 3) in corner order (edge k runs from corner k).
-    a, b = triangles.reshape(-1), np.roll(triangles, -1, axis=1).reshape(-1)
-    sagitta = (row_dot(x[b] - x[a], unit[b] - unit[a]) / 8).reshape(-1, 3)
-
-    def height(ab, bc, ca):
-        return np.maximum(np.maximum(np.abs(ab), np.abs(bc)), np.maximum(np.abs(ca), 4 / 9 * np.abs(ab + bc + ca)))
-
-    # The pair's outer edges keep their sagittas: v->p and p->u follow u->v in the first
-    # triangle, u->q and q->v follow v->u in the second.
-    vp, pu = (sagitta.reshape(-1)[_next_half_edge(pairs.first, k)] for k in (1, 2))
-    uq, qv = (sagitta.reshape(-1)[_next_half_edge(pairs.second, k)] for k in (1, 2))
-    pq = row_dot(x[q] - x[p], unit[q] - unit[p]) / 8
-    old = np.maximum(height(*sagitta[pairs.first // 3].T), height(*sagitta[pairs.second // 3].T))
-    new = np.maximum(height(uq, pq, pu), height(qv, vp, pq))  # sagittas are symmetric in their ends
-    promising = np.flatnonzero(new < (1 - FOLD_GAIN) * old)
-    promising = promising[np.argsort(-old[promising], kind="stable")[:FOLD_CHECKED]]
-    u, v, p, q = u[promising], v[promising], p[promising], q[promising]
-    fair = np.minimum(min_angles(x, np.stack([u, q, p], 1)), min_angles(x, np.stack([q, v, p], 1))) >= FOLD_MIN_ANGLE_DEGREES
-    keep = fair & pairs.subset(promising).flippable(x, stride)
-    promising, u, v, p, q = promising[keep], u[keep], v[keep], p[keep], q[keep]
-    if promising.size == 0:
-        return triangles
-    # Old pair: its two centroids and the midpoint of uv; new pair: the same with pq.
-    samples = np.stack(
-        [(x[u] + x[v] + x[p]) / 3, (x[u] + x[v] + x[q]) / 3, (x[u] + x[v]) / 2, (x[u] + x[q] + x[p]) / 3, (x[q] + x[v] + x[p]) / 3, (x[p] + x[q]) / 2], axis=1
-    )
-    corners = np.stack([u, v, p, q], axis=1)
-    distance = surface_distance(np.repeat(samples.reshape(-1, 3), 4, axis=0), np.repeat(corners, samples.shape[1], axis=0).reshape(-1))
-    distance = distance.reshape(promising.size, samples.shape[1], 4).min(axis=2)
-    measured_old, measured_new = distance[:, :3].max(axis=1), distance[:, 3:].max(axis=1)
-    better = measured_new < (1 - FOLD_GAIN) * measured_old
-    if np.any(better):
-        pairs.flip(triangles, promising[better], measured_new[better] - measured_old[better], stride)
-    return triangles
-
-
-def _next_half_edge(half_edge: np.ndarray, step: int) -> np.ndarray:
-    return half_edge // 3 * 3 + (half_edge % 3 + step) % 3
-
-
-class _Pairs(NamedTuple):
-    """Interior edges shared by exactly two consistently oriented triangles: half-edge ``first``
-    ``u -> v`` (third corner ``p``) and its twin ``second`` ``v -> u`` (third corner ``q``),
-    half-edge ``h`` being edge ``h % 3`` of triangle ``h // 3``; ``edges``: every undirected
-    edge key of the triangles, sorted."""
-
-    first: np.ndarray
-    second: np.ndarray
-    u: np.ndarray
-    v: np.ndarray
-    p: np.ndarray
-    q: np.ndarray
-    edges: np.ndarray
-
-    @classmethod
-    def of(cls, triangles: np.ndarray, stride: np.int64) -> _Pairs:
-        tail, head, key = half_edges(triangles, int(stride))
-        opposite = np.roll(triangles, -2, axis=1).reshape(-1)
-        order = np.argsort(key, kind="stable")
-        sorted_key = key[order]
-        starts = np.flatnonzero(np.concatenate([[True], sorted_key[1:] != sorted_key[:-1]]))
-        counts = np.diff(np.append(starts, key.size))
-        paired = starts[counts == 2]
-        first, second = order[paired], order[paired + 1]
-        consistent = (tail[first] == head[second]) & (head[first] == tail[second])
-        first, second = first[consistent], second[consistent]
-        return cls(first, second, tail[first], head[first], opposite[first], opposite[second], sorted_key[starts])
-
-    def subset(self, rows: np.ndarray) -> _Pairs:
-        return _Pairs(self.first[rows], self.second[rows], self.u[rows], self.v[rows], self.p[rows], self.q[rows], self.edges)
-
-    def flippable(self, x: np.ndarray, stride: np.int64) -> np.ndarray:
-        """Per pair: the new diagonal ``pq`` is not an edge already, ``u`` and ``v`` keep three
-        edges or more, and both new triangles face like the old pair."""
-        u, v, p, q, edges = self.u, self.v, self.p, self.q, self.edges
-        new_keys = np.minimum(p, q) * stride + np.maximum(p, q)
-        existing = edges[np.minimum(np.searchsorted(edges, new_keys), edges.size - 1)] == new_keys
-        degree = np.bincount(np.concatenate([edges // stride, edges % stride]), minlength=int(stride))
-        old_normal = _unit(row_cross(x[v] - x[u], x[p] - x[u])) + _unit(row_cross(x[u] - x[v], x[q] - x[v]))
-        unfolded = (row_dot(row_cross(x[q] - x[u], x[p] - x[u]), old_normal) > 0) & (row_dot(row_cross(x[v] - x[q], x[p] - x[q]), old_normal) > 0)
-        return ~existing & (degree[u] > 3) & (degree[v] > 3) & unfolded
-
-    def flip(self, triangles: np.ndarray, candidates: np.ndarray, priority: np.ndarray, stride: np.int64) -> None:
-        """Flip, in place, the ``candidates`` (rows) that share no triangle with one of lower
-        ``priority`` and create no edge that one of them creates."""
-        rank = np.empty(candidates.size, np.int64)
-        rank[np.argsort(priority, kind="stable")] = np.arange(candidates.size)
-        face_a, face_b = self.first[candidates] // 3, self.second[candidates] // 3
-        best = np.full(triangles.shape[0], candidates.size)
-        np.minimum.at(best, face_a, rank)
-        np.minimum.at(best, face_b, rank)
-        chosen = (best[face_a] == rank) & (best[face_b] == rank)
-        u, v, p, q = (a[candidates] for a in (self.u, self.v, self.p, self.q))
-        new_keys = np.minimum(p, q) * stride + np.maximum(p, q)
-        # Two flips of one round must not create the same edge.
-        chosen &= _first_occurrence(np.where(chosen, new_keys, -1 - np.arange(candidates.size)))
-        triangles[face_a[chosen]] = np.stack([u[chosen], q[chosen], p[chosen]], axis=1)
-        triangles[face_b[chosen]] = np.stack([q[chosen], v[chosen], p[chosen]], axis=1)
-
-
-def _first_occurrence(values: np.ndarray) -> np.ndarray:
-    _, first = np.unique(values, return_index=True)
-    mask = np.zeros(values.shape, bool)
-    mask[first] = True
-    return mask
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
+def unit_rows(v: np.ndarray) -> np.ndarray:
     norm = row_norm(v)[..., None]
     return v / np.where(norm > 0, norm, 1.0)
 
@@ -354,7 +180,7 @@ def bending_density(positions: np.ndarray, triangles: np.ndarray, normals: np.nd
     density 1 everywhere.
     """
     x = positions.astype(np.float64)
-    unit = _unit(normals.astype(np.float64))
+    unit = unit_rows(normals.astype(np.float64))
     tail, head = triangles.reshape(-1), np.roll(triangles, -1, axis=1).reshape(-1)
     sagitta = np.abs(row_dot(x[head] - x[tail], unit[head] - unit[tail])) / 8
     largest = np.zeros(x.shape[0])
@@ -455,7 +281,7 @@ def remove_degree_three(positions: np.ndarray, triangles: np.ndarray, num_vertic
         # A vertex standing out of its link's plane is a tip of the surface: it stays.
         x = positions.astype(np.float64)
         la, lb, ld = x[a], x[b], x[d]
-        height = np.abs(row_dot(x[centre] - la, _unit(row_cross(lb - la, ld - la))))
+        height = np.abs(row_dot(x[centre] - la, unit_rows(row_cross(lb - la, ld - la))))
         longest = np.sqrt(np.max(np.stack([np.sum((lb - la) ** 2, 1), np.sum((ld - lb) ** 2, 1), np.sum((la - ld) ** 2, 1)]), axis=0))
         new &= height <= DEGREE_THREE_MAX_HEIGHT * longest
         if not np.any(new):
@@ -620,7 +446,7 @@ def _star_min_angle(positions: np.ndarray, star: np.ndarray, corner: int, candid
     old_normal = row_cross(old[:, 1] - old[:, 0], old[:, 2] - old[:, 0])
     new_normal = np.cross(new[..., 1, :] - new[..., 0, :], new[..., 2, :] - new[..., 0, :])
     flat = new.reshape(-1, 3, 3)
-    angles = np.degrees(np.minimum.reduce([_corner_angle(flat[:, k], flat[:, (k + 1) % 3], flat[:, (k + 2) % 3]) for k in range(3)])).reshape(new.shape[:2])
+    angles = np.degrees(np.minimum.reduce([corner_angles(flat[:, k], flat[:, (k + 1) % 3], flat[:, (k + 2) % 3]) for k in range(3)])).reshape(new.shape[:2])
     turned = np.any(np.einsum("csd,sd->cs", new_normal, old_normal) <= 0, axis=1)
     return np.where(turned, -1.0, angles.min(axis=1))
 

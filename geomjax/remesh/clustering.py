@@ -22,6 +22,7 @@ from .._projection import SurfaceProjector
 from .._sharding import outside_context_mesh
 from .._validate import check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
 from ..sample.farthest import farthest_point_sampling
+from ._flips import delaunay_flips, fold_flips
 from ._patch_projection import PatchProjector
 from ._quadrics import ClusterQuadrics
 from ._surface_clusters import ClusterPatches, MeshEdges, cluster_means, connected_clusters, mend_tears
@@ -30,10 +31,8 @@ from ._triangulation import (
     boundary_vertices,
     collapse_poor_triangles,
     degenerate_vertices,
-    delaunay_flips,
     distinct_triangles,
     drop_crowded_edges,
-    fold_flips,
     nondegenerate,
     overturned_vertices,
     relaxation_targets,

@@ -1,11 +1,12 @@
-"""The remesher's triangle clean-up on hand-made triangulations, checked with independent angle
+"""The remesher's triangle clean-up and flips on hand-made triangulations, checked with independent angle
 and orientation computations."""
 
 import numpy as np
 
 from benchmarks import _quality as quality
 from geomjax import icosphere
-from geomjax.remesh._triangulation import MIN_ANGLE_DEGREES, bending_density, boundary_vertices, fold_flips, relocate_poor_corners, topology
+from geomjax.remesh._flips import fold_flips
+from geomjax.remesh._triangulation import MIN_ANGLE_DEGREES, bending_density, boundary_vertices, relocate_poor_corners, topology
 
 
 def _grid(n):
