@@ -52,12 +52,13 @@ class ClusterQuadrics(NamedTuple):
         # corner in the cluster.
         third = face_area / 3
         offset = row_dot(normal, first_corners)
-        entries = np.stack(
-            [third * normal[:, i] * normal[:, j] for i, j in zip(_ROWS, _COLUMNS)]
-            + [third * offset * normal[:, k] for k in range(3)]
-            + [third * normal[:, k] for k in range(3)],
-            axis=1,
-        )
+        # Filled column by column (stacking the columns costs several times more).
+        entries = np.empty((face_area.size, _ROWS.size + 6))
+        for column, (i, j) in enumerate(zip(_ROWS, _COLUMNS)):
+            np.multiply(third * normal[:, i], normal[:, j], out=entries[:, column])
+        for k in range(3):
+            np.multiply(third * offset, normal[:, k], out=entries[:, _ROWS.size + k])
+            np.multiply(third, normal[:, k], out=entries[:, _ROWS.size + 3 + k])
         sums = patches.incidence(face_area.size) @ entries
         num = patches.offsets.size - 1
         quadric = np.zeros((num, 3, 3))

@@ -45,7 +45,8 @@ class MeshEdges(NamedTuple):
         starts = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
         counts = np.diff(np.append(starts, key.size))
         a, b = np.divmod(key[starts], num)
-        offset = x[a].astype(np.float64) - x[b]
+        # np.take gathers rows several times faster than fancy indexing.
+        offset = np.take(x, a, axis=0).astype(np.float64) - np.take(x, b, axis=0)
         length = np.maximum(np.sqrt(row_dot(offset, offset)), np.finfo(np.float64).tiny)
         # The upper triangle, already in CSR order (rows a ascending, columns b within a row),
         # plus its transpose: the symmetric matrix that Dijkstra walks as a directed graph.
@@ -175,7 +176,7 @@ def mend_tears(edges: MeshEdges, x, faces, mass, centroids, labels, distance, ma
 def _cluster_seeds(x, centroids, labels) -> np.ndarray:
     """Per non-empty cluster (in label order), the member vertex closest to its centroid (ties:
     the lowest vertex index)."""
-    offset = x.astype(np.float64) - centroids[labels]
+    offset = x.astype(np.float64) - np.take(centroids, labels, axis=0)
     distance2 = row_dot(offset, offset)
     # Linear time (a sort by label and distance costs twenty times more): each cluster's
     # smallest distance, then the lowest index that attains it.

@@ -505,16 +505,19 @@ def _checked_density(vertex_density, vertices: jax.Array) -> np.ndarray | None:
 def _doubled_normals(x: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each face's first corner and ``(b - a) x (c - a)`` (float64, ``(F, 3)`` each): areas and
     planes, once for the masses and the quadrics."""
-    a, b, c = (x[faces[:, k]].astype(np.float64, copy=False) for k in range(3))
+    # np.take gathers rows several times faster than fancy indexing.
+    a, b, c = (np.take(x, faces[:, k], axis=0).astype(np.float64, copy=False) for k in range(3))
     return a, row_cross(b - a, c - a)
 
 
 def _stratified_seeds(x: np.ndarray, mass: np.ndarray, count: int, width: float, rng: np.random.Generator) -> np.ndarray:
     """One vertex (the lowest index) per occupied voxel, subsampled or topped up to ``count``."""
-    cells = np.floor((x - x.min(axis=0)) / width).astype(np.int64)
+    # Non-negative, so truncation is the floor.
+    cells = ((x - x.min(axis=0)) / width).astype(np.int64)
     dims = cells.max(axis=0) + 1
     keys = cells[:, 0] + dims[0] * (cells[:, 1] + dims[1] * cells[:, 2])
-    order = np.argsort(keys, kind="stable")
+    # A stable sort of 16-bit keys is a radix sort: ten times faster than of 64-bit ones.
+    order = np.argsort(keys.astype(np.uint16) if np.prod(dims) <= 1 << 16 else keys, kind="stable")
     first = np.ones(order.size, bool)
     first[1:] = keys[order[1:]] != keys[order[:-1]]
     seeds = order[first]
