@@ -30,6 +30,8 @@ from ._triangulation import (
     bending_density,
     boundary_vertices,
     collapse_poor_triangles,
+    column_max,
+    column_min,
     degenerate_vertices,
     distinct_triangles,
     drop_crowded_edges,
@@ -318,7 +320,7 @@ def remesh_with_sources(
     backend = select_implementation(_NAME, options["implementation"], platform=platform_of(vertices)).name
     device = next(iter(vertices.devices()))
     host = np.asarray(vertices)
-    low, high = host.min(axis=0), host.max(axis=0)
+    low, high = column_min(host), column_max(host)
     # Steps 4 to 6 measure the output in the input frame: areas and distances there square the
     # coordinates.
     largest = float(np.max(np.maximum(-low, high)))
@@ -513,8 +515,8 @@ def _doubled_normals(x: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.n
 def _stratified_seeds(x: np.ndarray, mass: np.ndarray, count: int, width: float, rng: np.random.Generator) -> np.ndarray:
     """One vertex (the lowest index) per occupied voxel, subsampled or topped up to ``count``."""
     # Non-negative, so truncation is the floor.
-    cells = ((x - x.min(axis=0)) / width).astype(np.int64)
-    dims = cells.max(axis=0) + 1
+    cells = ((x - column_min(x)) / width).astype(np.int64)
+    dims = column_max(cells) + 1
     keys = cells[:, 0] + dims[0] * (cells[:, 1] + dims[1] * cells[:, 2])
     # A stable sort of 16-bit keys is a radix sort: ten times faster than of 64-bit ones.
     order = np.argsort(keys.astype(np.uint16) if np.prod(dims) <= 1 << 16 else keys, kind="stable")
@@ -544,7 +546,7 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device):
     # Warp's cost per visited cell outweighs the extra centroids in each: on the shared meshes
     # this is 20-25% faster than cells of half the width, and wider ones are no faster.
     cell = 2 * radius
-    low, high = x.min(axis=0) - radius, x.max(axis=0) + radius
+    low, high = column_min(x) - radius, column_max(x) + radius
     dims = table_dims(low, high, cell, (resolution,) * 3)
     labels = None
     for _ in range(iterations):
