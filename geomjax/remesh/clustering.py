@@ -161,10 +161,9 @@ def remeshing(
        cluster spacing from its point of step 5 in all, and is projected onto its cluster's
        patch again; a move that would overturn a triangle is undone. A triangle's mass is its
        area times the mean over its corners of ``1 + (s / mean s)^2`` (times the density, if
-       given), ``s`` a vertex's largest edge sagitta estimated from its cluster's mean normal
-       (:func:`geomjax.remesh._triangulation.bending_density`): vertices gather where the
-       surface bends away from the triangles.
-       Boundary vertices stay. A complete flip pass follows; then each interior vertex of
+       given), ``s`` a vertex's largest edge sagitta ``|(b - a) . (n_b - n_a)| / 8`` (``n``:
+       the unit mean normals of the ends' clusters): vertices gather where the surface bends
+       away from the triangles. Boundary vertices stay. A complete flip pass follows; then each interior vertex of
        degree three that lies near the plane of its neighbours is removed, and the shortest
        edge of each triangle with an angle below 12 degrees is collapsed into its endpoint on
        the stronger feature, where that keeps the topology, turns no triangle over and
@@ -173,12 +172,12 @@ def remeshing(
        estimated 10% closer, are measured (distances from their centroids and diagonals'
        midpoints to the patches), and flipped where the other diagonal is measured 10% closer
        and both new triangles keep angles of 20 degrees or more. The corners of the triangles
-       still below 12 degrees (a needle
-       across a strip narrower than the spacing, which no collapse improves) then try points
-       0.1, 0.25 and 0.5 of the way to each neighbour, within the same directions and back on
-       their patches, and take the one that most raises the smallest angle of their triangles
-       without turning one over (up to 4 rounds); last, the checks of step 5. This raises the radius ratios and
-       the smallest angles and keeps tips and creases, at a few times the cost of steps 1 to 5
+       still below 12 degrees (a needle across a strip narrower than the spacing, which no
+       collapse improves) then try points 0.1, 0.25 and 0.5 of the way to each neighbour,
+       within the same directions and back on their patches, and take the one that most
+       raises the smallest angle of their triangles without turning one over (up to 4
+       rounds); last, the checks of step 5. This raises the radius ratios and the smallest
+       angles and keeps tips and creases, at a few times the cost of steps 1 to 5
        (``benchmarks/bench_sampling_remesh.py`` and ``benchmarks/bench_real_meshes.py``
        measure both, against pyacvd). Unused vertices are dropped and the result is returned
        in the input frame and dtype.
