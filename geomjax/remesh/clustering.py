@@ -447,7 +447,8 @@ def _within_reach(anchors: np.ndarray, points: np.ndarray, reach: float) -> np.n
     """``points`` ``(V, 3)`` pulled back to within ``reach`` of their ``anchors``."""
     offset = points - anchors
     distance = row_norm(offset)
-    return anchors + offset * np.minimum(1.0, reach / np.maximum(distance, np.finfo(np.float64).tiny))[:, None]
+    # reach / max(distance, reach): 1 within reach, no overflow at distance 0.
+    return anchors + offset * (reach / np.maximum(distance, reach))[:, None]
 
 
 def _surviving(triangles: np.ndarray, positions: np.ndarray, step: str) -> np.ndarray:
