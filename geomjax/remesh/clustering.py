@@ -556,33 +556,34 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device):
 
 
 def _lloyd_jax(x, mass, centroids, iterations):
-    centroids, labels = _lloyd_jax_jit(x, mass, centroids, iterations)
-    return np.asarray(centroids), np.asarray(labels)
+    """Lloyd's iterations: the nearest centroids from JAX, the means from :func:`cluster_means`
+    on the host as on the Warp path (the same centroids to the bit, so that the assignments agree
+    on both backends, ties included)."""
+    device = next(iter(x.devices()))
+    host_x, host_mass = np.asarray(x), np.asarray(mass).astype(np.float64)
+    centroids = np.asarray(centroids)
+    labels = np.asarray(_nearest_jax(x, jax.device_put(centroids, device)))
+    for _ in range(iterations):
+        centroids = cluster_means(host_x, host_mass, labels, centroids)
+        labels = np.asarray(_nearest_jax(x, jax.device_put(centroids, device)))
+    return centroids, labels
 
 
-@functools.partial(jax.jit, static_argnums=(3,))
-def _lloyd_jax_jit(x, mass, centroids, iterations):
-    num = centroids.shape[0]
-    block = query_block_size(x.shape[0], num * x.dtype.itemsize * 8)
+@jax.jit
+def _nearest_jax(x, centroids):
+    """``(N,)`` int32: the nearest centroid of each point (ties: the lowest index)."""
+    block = query_block_size(x.shape[0], centroids.shape[0] * x.dtype.itemsize * 8)
 
-    def nearest(c):
-        def block_labels(p):
-            d = p[:, None, :] - c[None, :, :]
-            d2 = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
-            return jnp.argmin(d2, axis=1).astype(jnp.int32)
+    def block_labels(p):
+        # max(square, 0) (a no-op) keeps XLA from fusing a product into the sum (a fused
+        # multiply-add, rounded once): each product is rounded, as in the Warp kernel and
+        # NumPy, so exact ties between centroids (common on regular meshes) fall the same way
+        # on both backends.
+        squares = jnp.maximum(jnp.square(centroids[None, :, :] - p[:, None, :]), 0)
+        d2 = squares[..., 0] + squares[..., 1] + squares[..., 2]
+        return jnp.argmin(d2, axis=1).astype(jnp.int32)
 
-        return map_query_blocks(block_labels, (x,), block_size=block)
-
-    def step(_, c):
-        labels = nearest(c)
-        total = jax.ops.segment_sum(mass, labels, num_segments=num)
-        sums = jax.ops.segment_sum(mass[:, None] * x, labels, num_segments=num)
-        occupied = total > 0
-        safe = jnp.where(occupied, total, jnp.ones((), total.dtype))
-        return jnp.where(occupied[:, None], sums / safe[:, None], c)
-
-    centroids = jax.lax.fori_loop(0, iterations, step, centroids)
-    return centroids, nearest(centroids)
+    return map_query_blocks(block_labels, (x,), block_size=block)
 
 
 def _warn_if_topology_changed(edges: MeshEdges, triangles: np.ndarray, n_clusters: int) -> None:

@@ -424,3 +424,30 @@ def test_nearest_centroids_with_previous_labels_are_exact(dtype):
         moved = np.array([points[labels == k].mean(axis=0) if np.any(labels == k) else centroids[k] for k in range(40)], dtype)
         # One centroid jumps across the box: its old members must find their new nearest.
         centroids = np.where(np.arange(40)[:, None] == step, -moved, moved).astype(dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_nearest_centroids_break_exact_ties_alike_on_both_backends(dtype):
+    # Each point (t, t, t) is, in exact arithmetic, as far from the six permutations of a
+    # centroid's coordinates: which one wins is decided by the rounding. Both backends must
+    # round each squared component and sum left to right, as NumPy below (XLA once fused a
+    # product into the sum and broke a quarter of these ties otherwise), then take the lowest
+    # index among equals; regular meshes are full of such ties.
+    import itertools
+
+    from warp_ffi.host import nearest_centroids
+
+    from geomjax._hash_grid import table_dims
+    from geomjax.remesh.clustering import _nearest_jax
+
+    rng = np.random.default_rng(0)
+    triples = rng.uniform(-1, 1, (8, 3))
+    centroids = np.concatenate([triple[list(order)][None] for triple in triples for order in itertools.permutations(range(3))]).astype(dtype)
+    t = rng.uniform(-1, 1, 4000)
+    points = np.stack([t, t, t], axis=1).astype(dtype)
+    squares = (centroids[None] - points[:, None]) ** 2
+    expected = np.argmin((squares[..., 0] + squares[..., 1]) + squares[..., 2], axis=1)
+    np.testing.assert_array_equal(np.asarray(_nearest_jax(jnp.asarray(points), jnp.asarray(centroids))), expected)
+    radius = 3.0
+    dims = table_dims(points.min(0) - radius, points.max(0) + radius, radius, (8,) * 3)
+    np.testing.assert_array_equal(nearest_centroids(points, centroids, radius, radius, dims, "cpu"), expected)
