@@ -331,13 +331,7 @@ def collapse_poor_triangles(positions: np.ndarray, triangles: np.ndarray, fixed:
         if poor.size == 0:
             break
         # The triangles around the poor triangles' corners: all that the collapses below read.
-        corners = np.unique(triangles[poor])
-        star: dict[int, set[int]] = {int(v): set() for v in corners}
-        near = live[np.any(np.isin(triangles[live], corners), axis=1)]
-        for face, row in zip(near.tolist(), triangles[near].tolist()):
-            for vertex in row:
-                if vertex in star:
-                    star[vertex].add(face)
+        star = {vertex: set(live[faces].tolist()) for vertex, faces in _faces_of(triangles[live], np.unique(triangles[poor])).items()}
         touched: set[int] = set()
         for face in poor:
             if not alive[face] or int(face) in touched:
@@ -424,7 +418,7 @@ def relocate_poor_corners(surface_points: tuple[np.ndarray, ...], triangles: np.
             star = triangles[corner_faces[corner]]
             rows = np.flatnonzero(vertex == corner)
             score = _star_min_angle(positions, star, corner, placed[0][rows])
-            if score.max() > _star_min_angle(positions, star, corner, positions[corner][None])[0]:
+            if score.max() > angles[corner_faces[corner]].min():
                 best[corner] = (float(score.max()), int(rows[np.argmax(score)]))
         # Worst triangle first, its corner with the best move; no two movers in one triangle.
         blocked: set[int] = set()
@@ -463,7 +457,7 @@ def _star_min_angle(positions: np.ndarray, star: np.ndarray, corner: int, candid
     at = star == corner
     new[:, at] = candidates.astype(np.float64)[:, None]
     old_normal = row_cross(old[:, 1] - old[:, 0], old[:, 2] - old[:, 0])
-    new_normal = np.cross(new[..., 1, :] - new[..., 0, :], new[..., 2, :] - new[..., 0, :])
+    new_normal = row_cross(new[..., 1, :] - new[..., 0, :], new[..., 2, :] - new[..., 0, :])
     flat = new.reshape(-1, 3, 3)
     angles = np.degrees(np.minimum.reduce([corner_angles(flat[:, k], flat[:, (k + 1) % 3], flat[:, (k + 2) % 3]) for k in range(3)])).reshape(new.shape[:2])
     turned = np.any(np.einsum("csd,sd->cs", new_normal, old_normal) <= 0, axis=1)

@@ -376,7 +376,7 @@ def remesh_with_sources(
     if backend == "warp":
         centroids, labels = _lloyd_warp(x, mass, centroids, max_iterations, radius, resolution, device)
     else:
-        centroids, labels = _lloyd_jax(jax.device_put(x, device), jax.device_put(mass.astype(dtype), device), jax.device_put(centroids, device), max_iterations)
+        centroids, labels = _lloyd_jax(x, mass, centroids, max_iterations, device)
     index_dtype = jnp.int64 if np.dtype(mesh_indices.dtype) == np.int64 else jnp.int32
     if projector is not None:
         # 4. and 5. as the reference: projected centroids and their relabelled triangles.
@@ -555,17 +555,15 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device):
     return centroids, nearest_centroids(x, centroids, radius, cell, dims, warp_device, labels)
 
 
-def _lloyd_jax(x, mass, centroids, iterations):
-    """Lloyd's iterations: the nearest centroids from JAX, the means from :func:`cluster_means`
-    on the host as on the Warp path (the same centroids to the bit, so that the assignments agree
-    on both backends, ties included)."""
-    device = next(iter(x.devices()))
-    host_x, host_mass = np.asarray(x), np.asarray(mass).astype(np.float64)
-    centroids = np.asarray(centroids)
-    labels = np.asarray(_nearest_jax(x, jax.device_put(centroids, device)))
+def _lloyd_jax(x, mass, centroids, iterations, device):
+    """Lloyd's iterations: the nearest centroids from JAX on ``device``, the means from
+    :func:`cluster_means` on the host with the host ``x`` and ``mass``, as on the Warp path (the
+    same centroids to the bit, so that the assignments agree on both backends, ties included)."""
+    points = jax.device_put(x, device)
+    labels = np.asarray(_nearest_jax(points, jax.device_put(centroids, device)))
     for _ in range(iterations):
-        centroids = cluster_means(host_x, host_mass, labels, centroids)
-        labels = np.asarray(_nearest_jax(x, jax.device_put(centroids, device)))
+        centroids = cluster_means(x, mass, labels, centroids)
+        labels = np.asarray(_nearest_jax(points, jax.device_put(centroids, device)))
     return centroids, labels
 
 
