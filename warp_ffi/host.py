@@ -44,6 +44,10 @@ when it is closer than half the distance ``g`` from ``c`` to any other centroid 
 margin), no other centroid can be as close (``|p - c_j| >= g - |p - c|``), and the search is
 skipped; that settles most points of a centroidal layout with one distance. ``g`` is the
 nearest other centroid within ``radius``, or ``radius`` if none is (a lower bound either way).
+With many points per centroid (``NEIGHBOUR_LIST_MIN_POINTS``) each centroid lists instead its
+neighbours within ``radius`` by distance, and a point measures only those within ``2 |p - c|``
+of ``c`` (any centroid as close as ``c`` is: ``|c_j - c| <= |c_j - p| + |p - c|``): that also
+settles the points near a cluster's border, where the gap test fails, without a grid search.
 """
 
 from __future__ import annotations
@@ -397,6 +401,12 @@ def eliminate(row_offsets: np.ndarray, columns: np.ndarray, pair_weight: np.ndar
 
 ACCEPT_MARGIN = 1.0 - 2.0**-12
 INNER_RADIUS_FRACTION = 0.5  # the first search radius, as a fraction of ``radius``
+# Points per centroid from which Lloyd iterations look up neighbour lists rather than gaps:
+# with fewer, building the lists costs more than they save.
+NEIGHBOUR_LIST_MIN_POINTS = 10
+# Absolute widening of a point's reach around its previous centroid, in dtype epsilons of the
+# largest coordinates of the two: covers the rounding of the distances near coinciding points.
+NEIGHBOUR_SLACK_EPSILONS = 16.0
 _ACCEPT_MARGIN = wp.constant(ACCEPT_MARGIN)
 
 
@@ -426,21 +436,89 @@ def _centroid_gap_kernel(grid: wp.uint64, centroids: wp.array(dtype=Any), params
 
 @wp.kernel
 @no_type_check
+def _centroid_neighbour_count_kernel(grid: wp.uint64, centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), counts: wp.array(dtype=wp.int32)):
+    k = wp.tid()
+    c = centroids[k]
+    r = params[2]
+    n = int(0)
+    query = wp.hash_grid_query(grid, c, r)
+    j = int(0)
+    while wp.hash_grid_query_next(query, j):
+        d = centroids[j] - c
+        if j != k and wp.dot(d, d) < r * r:
+            n += 1
+    counts[k] = n
+
+
+@wp.kernel
+@no_type_check
+def _centroid_neighbour_fill_kernel(
+    grid: wp.uint64, centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), offsets: wp.array(dtype=wp.int32),
+    neighbours: wp.array(dtype=wp.int32), distances: wp.array(dtype=Any),
+):  # fmt: skip
+    # Each centroid's other centroids within the outer radius, by distance (ties: lower index),
+    # sorted by insertion (a few dozen each).
+    k = wp.tid()
+    c = centroids[k]
+    r = params[2]
+    start = offsets[k]
+    n = int(0)
+    query = wp.hash_grid_query(grid, c, r)
+    j = int(0)
+    while wp.hash_grid_query_next(query, j):
+        d = centroids[j] - c
+        if j != k and wp.dot(d, d) < r * r:
+            length = wp.length(d)
+            at = start + n
+            while at > start and (distances[at - 1] > length or (distances[at - 1] == length and neighbours[at - 1] > j)):
+                distances[at] = distances[at - 1]
+                neighbours[at] = neighbours[at - 1]
+                at -= 1
+            distances[at] = length
+            neighbours[at] = j
+            n += 1
+
+
+@wp.kernel
+@no_type_check
 def _nearest_centroid_kernel(
     grid: wp.uint64, points: wp.array(dtype=Any), centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), previous: wp.array(dtype=wp.int32),
-    gaps: wp.array(dtype=Any), offset: wp.int32, labels: wp.array(dtype=wp.int32),
+    gaps: wp.array(dtype=Any), offsets: wp.array(dtype=wp.int32), neighbours: wp.array(dtype=wp.int32), distances: wp.array(dtype=Any),
+    offset: wp.int32, labels: wp.array(dtype=wp.int32),
 ):  # fmt: skip
     _, t = wp.tid()
     i = t + offset
     p = points[i]
     if previous.shape[0] > 0:
         own = previous[i]
-        d = centroids[own] - p
-        # 2 |p - c| < g: c is strictly the nearest (see the module docstring).
-        bound = gaps[own] * type(p[0])(_ACCEPT_MARGIN)
-        if type(p[0])(4.0) * wp.dot(d, d) < bound * bound:
-            labels[i] = own
-            return
+        c = centroids[own]
+        own_d2 = wp.dot(c - p, c - p)
+        if offsets.shape[0] > 0:
+            # A centroid as close as c lies within 2 |p - c| of c (see the module docstring):
+            # the neighbours of c up to that reach (the margin and the slack, for the rounding
+            # of the coordinates, only widen it) hold the nearest.
+            magnitude = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.abs(p[2])) + wp.max(wp.max(wp.abs(c[0]), wp.abs(c[1])), wp.abs(c[2]))
+            reach = type(p[0])(2.0) * wp.sqrt(own_d2) / type(p[0])(_ACCEPT_MARGIN) + params[4] * magnitude
+            if reach < params[3]:
+                best = own
+                best_d2 = own_d2
+                for e in range(offsets[own], offsets[own + 1]):
+                    if distances[e] > reach:
+                        break
+                    j = neighbours[e]
+                    d = centroids[j] - p
+                    d2 = wp.dot(d, d)
+                    if _closer(d2, j, best_d2, best):
+                        best = j
+                        best_d2 = d2
+                labels[i] = best
+                return
+        else:
+            # 2 |p - c| < g: c is strictly the nearest (see the module docstring).
+            bound = gaps[own] * type(p[0])(_ACCEPT_MARGIN)
+            if type(p[0])(4.0) * own_d2 < bound * bound:
+                labels[i] = own
+                return
     best = int(-1)
     best_d2 = params[0] * params[0]
     # Two radii (params: inner radius, its acceptance distance, outer radius, its acceptance
@@ -472,11 +550,13 @@ def _nearest_centroid_kernel(
 
 
 def _centroid_types(scalar) -> dict:
-    return {"points": vectors(scalar), "centroids": vectors(scalar), "params": scalars(scalar), "gaps": scalars(scalar)}
+    return {"points": vectors(scalar), "centroids": vectors(scalar), "params": scalars(scalar), "gaps": scalars(scalar), "distances": scalars(scalar)}
 
 
 _nearest_centroid = Overloads(_nearest_centroid_kernel, _centroid_types)
 _centroid_gap = Overloads(_centroid_gap_kernel, _centroid_types)
+_neighbour_count = Overloads(_centroid_neighbour_count_kernel, _centroid_types)
+_neighbour_fill = Overloads(_centroid_neighbour_fill_kernel, _centroid_types)
 
 
 def nearest_centroids(
@@ -487,8 +567,9 @@ def nearest_centroids(
     ``points`` and ``centroids`` share one float dtype (float32 or float64); centroids are
     bucketed in cells of ``cell_width`` (``radius`` suits: the first search then visits at most
     two cells per axis). ``previous``: the points' labels before the centroids moved (``(N,)``
-    integers in ``[0, K)``), which settles most points with one distance; the result is the
-    same without.
+    integers in ``[0, K)``), which settles most points with one distance (with at least
+    ``NEIGHBOUR_LIST_MIN_POINTS`` points per centroid, a few: those of the centroids next to the
+    previous one); the result is the same without.
     """
     dtype = np.dtype(points.dtype)
     scalar = WARP_SCALAR[dtype]
@@ -496,15 +577,30 @@ def nearest_centroids(
     points_wp: wp.array = wp.array(points, dtype=vec, device=device)
     centroids_wp: wp.array = wp.array(centroids, dtype=vec, device=device)
     inner = radius * INNER_RADIUS_FRACTION
-    params: wp.array = wp.array(np.array([inner, inner * ACCEPT_MARGIN, radius, radius * ACCEPT_MARGIN], dtype), dtype=scalar, device=device)
+    slack = NEIGHBOUR_SLACK_EPSILONS * np.finfo(dtype).eps
+    params: wp.array = wp.array(np.array([inner, inner * ACCEPT_MARGIN, radius, radius * ACCEPT_MARGIN, slack], dtype), dtype=scalar, device=device)
     labels = wp.empty(points.shape[0], dtype=wp.int32, device=device)
     previous_wp: wp.array = wp.array(np.zeros(0, np.int32) if previous is None else previous.astype(np.int32), dtype=wp.int32, device=device)
-    gaps = wp.zeros(centroids.shape[0], dtype=scalar, device=device)
+    num = centroids.shape[0]
+    with_lists = previous is not None and points.shape[0] >= NEIGHBOUR_LIST_MIN_POINTS * num
+    # Unused inputs are empty arrays (the kernel reads their sizes).
+    gaps = wp.zeros(num if previous is not None and not with_lists else 0, dtype=scalar, device=device)
+    offsets = np.zeros(num + 1 if with_lists else 0, np.int32)
     with GRID_LOCK:
         grid = hash_grid(centroids_wp, cell_width, dims)
-        if previous is not None:
-            wp.launch(_centroid_gap(dtype), dim=centroids.shape[0], inputs=[grid.id, centroids_wp, params], outputs=[gaps], device=device)
-        launch_in_chunks(_nearest_centroid(dtype), 1, points.shape[0], [grid.id, points_wp, centroids_wp, params, previous_wp, gaps], [labels])
+        if with_lists:
+            counts = wp.empty(num, dtype=wp.int32, device=device)
+            wp.launch(_neighbour_count(dtype), dim=num, inputs=[grid.id, centroids_wp, params], outputs=[counts], device=device)
+            np.cumsum(counts.numpy(), out=offsets[1:])
+        offsets_wp: wp.array = wp.array(offsets, dtype=wp.int32, device=device)
+        neighbours = wp.empty(int(offsets[-1]) if with_lists else 0, dtype=wp.int32, device=device)
+        distances = wp.empty(neighbours.shape[0], dtype=scalar, device=device)
+        if with_lists:
+            wp.launch(_neighbour_fill(dtype), dim=num, inputs=[grid.id, centroids_wp, params, offsets_wp], outputs=[neighbours, distances], device=device)
+        elif gaps.shape[0]:
+            wp.launch(_centroid_gap(dtype), dim=num, inputs=[grid.id, centroids_wp, params], outputs=[gaps], device=device)
+        inputs = [grid.id, points_wp, centroids_wp, params, previous_wp, gaps, offsets_wp, neighbours, distances]
+        launch_in_chunks(_nearest_centroid(dtype), 1, points.shape[0], inputs, [labels])
     return labels.numpy()
 
 
@@ -534,19 +630,28 @@ def _patch_closest_kernel(
     patch = patches[i]
     start = offsets[patch]
     stop = offsets[patch + 1]
-    # Each face lies in its bounding sphere, so |p - centre| -/+ radius bound its distance: the
-    # smallest upper bound rules out every face whose lower bound exceeds it.
-    upper = wp.length(p - centres[candidates[start]]) + radii[candidates[start]]
+    # The face whose bounding-sphere centre is nearest is usually the closest face: its distance
+    # U bounds the patch's. Each face lies in its bounding sphere, so a face at |p - centre| - radius
+    # > U cannot be closer: the test |p - centre| <= (U + radius)(1 + s) / (1 - s) (s: the slack
+    # for rounding) needs no square root per face.
+    # (centres and radii are stored per candidate, in patch order: read in sequence.)
+    nearest = candidates[start]
+    nearest_d2 = wp.length_sq(p - centres[start])
     for j in range(start + 1, stop):
-        face = candidates[j]
-        upper = wp.min(upper, wp.length(p - centres[face]) + radii[face])
+        d2 = wp.length_sq(p - centres[j])
+        if d2 < nearest_d2:
+            nearest = candidates[j]
+            nearest_d2 = d2
+    upper = wp.sqrt(triangle_distance_sq(p, vertices[faces[3 * nearest]], vertices[faces[3 * nearest + 1]], vertices[faces[3 * nearest + 2]]))
+    one = type(upper)(1.0)
+    widen = (one + slack[0]) / (one - slack[0])
     best = int(-1)
     best_d2 = type(upper)(0.0)
     # Candidates ascend within a patch, so the strict comparison keeps the lowest index of a tie.
     for j in range(start, stop):
-        face = candidates[j]
-        to_centre = wp.length(p - centres[face])
-        if to_centre - radii[face] <= upper + slack[0] * (to_centre + radii[face] + upper):
+        reach = (upper + radii[j]) * widen
+        if wp.length_sq(p - centres[j]) <= reach * reach:
+            face = candidates[j]
             d2 = triangle_distance_sq(p, vertices[faces[3 * face]], vertices[faces[3 * face + 1]], vertices[faces[3 * face + 2]])
             if best < 0 or d2 < best_d2:
                 best = face
@@ -562,14 +667,17 @@ _patch_closest = Overloads(
 
 @wp.kernel
 @no_type_check
-def _face_sphere_kernel(vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.int32), centres: wp.array(dtype=Any), radii: wp.array(dtype=Any)):
-    face = wp.tid()
+def _face_sphere_kernel(
+    vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.int32), candidates: wp.array(dtype=wp.int32), centres: wp.array(dtype=Any), radii: wp.array(dtype=Any)
+):  # fmt: skip
+    j = wp.tid()
+    face = candidates[j]
     a = vertices[faces[3 * face]]
     b = vertices[faces[3 * face + 1]]
     c = vertices[faces[3 * face + 2]]
     centre = (a + b + c) / type(a[0])(3.0)
-    centres[face] = centre
-    radii[face] = wp.max(wp.max(wp.length(a - centre), wp.length(b - centre)), wp.length(c - centre))
+    centres[j] = centre
+    radii[j] = wp.max(wp.max(wp.length(a - centre), wp.length(b - centre)), wp.length(c - centre))
 
 
 _face_sphere = Overloads(_face_sphere_kernel, lambda s: {"vertices": vectors(s), "centres": vectors(s), "radii": wp.array(dtype=s)})
@@ -580,8 +688,9 @@ class PatchSearch:
 
     ``vertices`` ``(V, 3)`` float32 or float64 (the working dtype), ``faces`` ``(F, 3)``
     int32; patch ``k`` is ``candidates[offsets[k]:offsets[k + 1]]``, ascending face indices, at
-    least one per patch. Each face also gets a bounding sphere: its centroid and the largest
-    distance from there to a corner (their rounding is within the pruning's slack).
+    least one per patch. Each candidate also gets its face's bounding sphere (stored in candidate
+    order): the face's centroid and the largest distance from there to a corner (their rounding
+    is within the pruning's slack).
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, offsets: np.ndarray, candidates: np.ndarray, device: str):
@@ -594,12 +703,13 @@ class PatchSearch:
             return wp.array(np.ascontiguousarray(values, np.int32).reshape(-1), dtype=wp.int32, device=device)
 
         vertices_wp: wp.array = wp.array(vertices, dtype=vec, device=device)
-        faces_wp = as_int(faces)
-        centres = wp.empty(faces.shape[0], dtype=vec, device=device)
-        radii = wp.empty(faces.shape[0], dtype=scalar, device=device)
-        wp.launch(_face_sphere(self.dtype), dim=faces.shape[0], inputs=[vertices_wp, faces_wp], outputs=[centres, radii], device=device)
+        faces_wp, candidates_wp = as_int(faces), as_int(candidates)
+        # Spheres per candidate (a face once per patch it is in): the search reads them in order.
+        centres = wp.empty(candidates.size, dtype=vec, device=device)
+        radii = wp.empty(candidates.size, dtype=scalar, device=device)
+        wp.launch(_face_sphere(self.dtype), dim=candidates.size, inputs=[vertices_wp, faces_wp, candidates_wp], outputs=[centres, radii], device=device)
         slack: wp.array = wp.array(np.array([PATCH_BOUND_SLACK * np.finfo(self.dtype).eps], self.dtype), dtype=scalar, device=device)
-        self.arrays = [vertices_wp, faces_wp, as_int(offsets), as_int(candidates), centres, radii, slack]
+        self.arrays = [vertices_wp, faces_wp, as_int(offsets), candidates_wp, centres, radii, slack]
         self.min_chunk = max(PATCH_MIN_CHUNK, round(PATCH_CHUNK_FACES * (offsets.size - 1) / max(candidates.size, 1)))
 
 

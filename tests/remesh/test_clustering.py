@@ -402,17 +402,21 @@ def test_low_precision_vertex_density_is_accepted(implementation):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_nearest_centroids_with_previous_labels_are_exact(dtype):
+@pytest.mark.parametrize("num_centroids", [40, 600])
+def test_nearest_centroids_with_previous_labels_are_exact(dtype, num_centroids):
     # Lloyd's warp assignment, given the previous labels, skips the search for points much
-    # closer to their old cluster's moved centroid than that centroid is to any other; the
-    # answer must stay the brute-force nearest (ties: lowest index), also after a big move.
-    from warp_ffi.host import nearest_centroids
+    # closer to their old cluster's moved centroid than that centroid is to any other (600
+    # centroids: 5 points each), or measures only the neighbours of that centroid within twice
+    # the point's distance (40: 75 points each, neighbour lists); the answer must stay the
+    # brute-force nearest (ties: lowest index), also after a big move.
+    from warp_ffi.host import NEIGHBOUR_LIST_MIN_POINTS, nearest_centroids
 
     from geomjax._hash_grid import table_dims
 
     rng = np.random.default_rng(3)
     points = rng.uniform(-1, 1, (3000, 3)).astype(dtype)
-    centroids = points[rng.choice(3000, 40, replace=False)]
+    assert (3000 >= NEIGHBOUR_LIST_MIN_POINTS * num_centroids) == (num_centroids == 40)
+    centroids = points[rng.choice(3000, num_centroids, replace=False)]
     radius = 0.5
     dims = table_dims(points.min(0) - radius, points.max(0) + radius, radius, (32,) * 3)
     labels = None
@@ -421,9 +425,9 @@ def test_nearest_centroids_with_previous_labels_are_exact(dtype):
         offsets = points[:, None, :].astype(np.float64) - centroids[None].astype(np.float64)
         np.testing.assert_array_equal(found, np.argmin(np.sum(offsets**2, axis=2), axis=1))
         labels = found
-        moved = np.array([points[labels == k].mean(axis=0) if np.any(labels == k) else centroids[k] for k in range(40)], dtype)
+        moved = np.array([points[labels == k].mean(axis=0) if np.any(labels == k) else centroids[k] for k in range(num_centroids)], dtype)
         # One centroid jumps across the box: its old members must find their new nearest.
-        centroids = np.where(np.arange(40)[:, None] == step, -moved, moved).astype(dtype)
+        centroids = np.where(np.arange(num_centroids)[:, None] == step, -moved, moved).astype(dtype)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
@@ -451,3 +455,7 @@ def test_nearest_centroids_break_exact_ties_alike_on_both_backends(dtype):
     radius = 3.0
     dims = table_dims(points.min(0) - radius, points.max(0) + radius, radius, (8,) * 3)
     np.testing.assert_array_equal(nearest_centroids(points, centroids, radius, radius, dims, "cpu"), expected)
+    # With previous labels (83 points per centroid: the neighbour lists), here the centroid
+    # below the answer (often a tied permutation), the lowest tied index must still win.
+    previous = np.maximum(expected - 1, 0)
+    np.testing.assert_array_equal(nearest_centroids(points, centroids, radius, radius, dims, "cpu", previous), expected)
