@@ -182,6 +182,7 @@ def register_surface(
         # 0.12 with a small strain weight); its size is the lattice's, so the SVD costs little
         # next to forming the matrix.
         solver = optx.Dogleg(rtol=tolerance, atol=tolerance, linear_solver=lx.Normal(lx.SVD()))
+        solver = eqx.tree_at(lambda s: s.descent, solver, _DoglegDescent(linear_solver=solver.descent.linear_solver))
     options = dict(
         origin=origin, extent=extent, basis=basis, strain_weight=strain_weight, bending_weight=bending_weight,
         regularization=regularization, implementation=implementation, brute_force=brute_force,
@@ -190,6 +191,19 @@ def register_surface(
     meshes = (template.points, template.cells, target.points, target.cells, tree, hinges)
     solution = _solve(lattice0, meshes, solver, max_steps, options)
     return fitted(solution, op_name=_NAME, max_steps=max_steps, throw=throw, return_solution=return_solution)
+
+
+class _DoglegDescent(optx.DoglegDescent):
+    """optimistix's dogleg descent with its (unused) initial step norms in the dtype of ``y``.
+
+    optimistix 0.1 starts them as default-dtype scalars: float64 under ``jax_enable_x64``, so a
+    float32 solve there failed in a ``lax.cond`` whose branches then differ in dtype.
+    """
+
+    def init(self, y, f_info_struct):
+        state = super().init(y, f_info_struct)
+        dtype = jnp.result_type(*jax.tree.leaves(y))
+        return eqx.tree_at(lambda s: (s.newton_norm, s.cauchy_norm), state, (state.newton_norm.astype(dtype), state.cauchy_norm.astype(dtype)))
 
 
 @eqx.filter_jit

@@ -60,6 +60,19 @@ def test_a_template_lands_on_a_stretched_target(implementation):
     assert _distances(moved, target, faces).max() < 1e-4
 
 
+def test_float32_registration_under_x64():
+    """float32 surfaces while jax_enable_x64 is on (as in these tests): the default dogleg solver
+    used to fail with a TypeError inside optimistix (its step norms started as float64)."""
+    points, faces = _sphere()
+    template, target = (points * 0.9).astype(jnp.float32), (points * jnp.asarray([1.2, 0.9, 1.0])).astype(jnp.float32)
+    lattice = register_surface(template, faces, target, faces, RESOLUTION, **BOX)
+    assert lattice.dtype == jnp.float32
+    moved = free_form_deform_points(template, lattice, **BOX)
+    # From 0.2 away to the float32 stopping tolerance (1e-5 of the lattice) and the Tikhonov
+    # bias (1e-6 in float32): a few 1e-4.
+    assert _distances(moved.astype(jnp.float64), target.astype(jnp.float64), faces).max() < 1e-3
+
+
 def test_regularisers_and_their_effect():
     points, faces = _sphere()
     template, target = points * 0.9, points
