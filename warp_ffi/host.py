@@ -622,11 +622,14 @@ PATCH_BOUND_SLACK = 64
 def _patch_closest_kernel(
     points: wp.array(dtype=Any), patches: wp.array(dtype=wp.int32), vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int32), candidates: wp.array(dtype=wp.int32), centres: wp.array(dtype=Any), radii: wp.array(dtype=Any),
-    slack: wp.array(dtype=Any), offset: wp.int32, found: wp.array(dtype=wp.int32),
+    tolerances: wp.array(dtype=Any), offset: wp.int32, found: wp.array(dtype=wp.int32),
 ):  # fmt: skip
     _, t = wp.tid()
     i = t + offset
     p = points[i]
+    # tolerances: the pruning's slack s, and the tie tolerance (relative, magnitude): faces
+    # within tie = relative (magnitude + max |p_k|) of the nearest distance count as tied.
+    tie = tolerances[1] * (tolerances[2] + wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.abs(p[2])))
     patch = patches[i]
     start = offsets[patch]
     stop = offsets[patch + 1]
@@ -642,9 +645,10 @@ def _patch_closest_kernel(
         if d2 < nearest_d2:
             nearest = candidates[j]
             nearest_d2 = d2
-    upper = wp.sqrt(triangle_distance_sq(p, vertices[faces[3 * nearest]], vertices[faces[3 * nearest + 1]], vertices[faces[3 * nearest + 2]]))
+    # (U + tie: the tied faces must pass too.)
+    upper = wp.sqrt(triangle_distance_sq(p, vertices[faces[3 * nearest]], vertices[faces[3 * nearest + 1]], vertices[faces[3 * nearest + 2]])) + tie
     one = type(upper)(1.0)
-    widen = (one + slack[0]) / (one - slack[0])
+    widen = (one + tolerances[0]) / (one - tolerances[0])
     best = int(-1)
     best_d2 = type(upper)(0.0)
     # Candidates ascend within a patch, so the strict comparison keeps the lowest index of a tie.
@@ -656,12 +660,24 @@ def _patch_closest_kernel(
             if best < 0 or d2 < best_d2:
                 best = face
                 best_d2 = d2
+    # The lowest face within the tie tolerance of the nearest (a lower one than best, if any).
+    limit = wp.sqrt(best_d2) + tie
+    limit2 = limit * limit
+    for j in range(start, stop):
+        face = candidates[j]
+        if face >= best:
+            break
+        reach = (upper + radii[j]) * widen
+        if wp.length_sq(p - centres[j]) <= reach * reach:
+            if triangle_distance_sq(p, vertices[faces[3 * face]], vertices[faces[3 * face + 1]], vertices[faces[3 * face + 2]]) <= limit2:
+                best = face
+                break
     found[i] = best
 
 
 _patch_closest = Overloads(
     _patch_closest_kernel,
-    lambda s: {"points": vectors(s), "vertices": vectors(s), "centres": vectors(s), "radii": wp.array(dtype=s), "slack": wp.array(dtype=s)},
+    lambda s: {"points": vectors(s), "vertices": vectors(s), "centres": vectors(s), "radii": wp.array(dtype=s), "tolerances": wp.array(dtype=s)},
 )
 
 
@@ -690,10 +706,13 @@ class PatchSearch:
     int32; patch ``k`` is ``candidates[offsets[k]:offsets[k + 1]]``, ascending face indices, at
     least one per patch. Each candidate also gets its face's bounding sphere (stored in candidate
     order): the face's centroid and the largest distance from there to a corner (their rounding
-    is within the pruning's slack).
+    is within the pruning's slack). ``tie``: ``(relative, magnitude)``, faces within
+    ``relative * (magnitude + max_k |p_k|)`` of a point's nearest distance are tied.
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, offsets: np.ndarray, candidates: np.ndarray, device: str):
+    def __init__(
+        self, vertices: np.ndarray, faces: np.ndarray, offsets: np.ndarray, candidates: np.ndarray, device: str, tie: tuple[float, float]
+    ):  # fmt: skip
         self.dtype = np.dtype(vertices.dtype)
         scalar = WARP_SCALAR[self.dtype]
         vec = wp.types.vector(3, scalar)
@@ -708,18 +727,18 @@ class PatchSearch:
         centres = wp.empty(candidates.size, dtype=vec, device=device)
         radii = wp.empty(candidates.size, dtype=scalar, device=device)
         wp.launch(_face_sphere(self.dtype), dim=candidates.size, inputs=[vertices_wp, faces_wp, candidates_wp], outputs=[centres, radii], device=device)
-        slack: wp.array = wp.array(np.array([PATCH_BOUND_SLACK * np.finfo(self.dtype).eps], self.dtype), dtype=scalar, device=device)
-        self.arrays = [vertices_wp, faces_wp, as_int(offsets), candidates_wp, centres, radii, slack]
+        tolerances = np.array([PATCH_BOUND_SLACK * np.finfo(self.dtype).eps, *tie], self.dtype)
+        self.arrays = [vertices_wp, faces_wp, as_int(offsets), candidates_wp, centres, radii, wp.array(tolerances, dtype=scalar, device=device)]
         self.min_chunk = max(PATCH_MIN_CHUNK, round(PATCH_CHUNK_FACES * (offsets.size - 1) / max(candidates.size, 1)))
 
 
 def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.ndarray) -> np.ndarray:
     """``(Q,)`` int32: the nearest face of each point ``(Q, 3)`` (the working dtype) among the
-    faces of its patch ``patches`` ``(Q,)``; distances exact in the working dtype, ties to the
-    lowest face index."""
+    faces of its patch ``patches`` ``(Q,)``; distances exact in the working dtype, ties (within
+    the search's tie tolerance) to the lowest face index."""
     vec = wp.types.vector(3, WARP_SCALAR[search.dtype])
     found = wp.empty(points.shape[0], dtype=wp.int32, device=search.device)
-    vertices, faces, offsets, candidates, centres, radii, slack = search.arrays
+    vertices, faces, offsets, candidates, centres, radii, tolerances = search.arrays
     inputs = [
         wp.array(points, dtype=vec, device=search.device),
         wp.array(patches, dtype=wp.int32, device=search.device),
@@ -729,7 +748,7 @@ def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.nda
         candidates,
         centres,
         radii,
-        slack,
+        tolerances,
     ]
     launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=search.min_chunk)
     return found.numpy()

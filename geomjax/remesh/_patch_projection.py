@@ -11,8 +11,12 @@ the projections of a remesh.
 
 The nearest candidate comes from a Warp kernel (``warp_ffi.remesh.patch_closest_faces``, which
 skips the faces whose bounding sphere rules them out) or a JAX twin over the flattened (point,
-candidate) pairs; both measure exact distances in the working dtype and give ties to the lowest
-face index. The point and its barycentric weights on the chosen triangle come from
+candidate) pairs; both measure distances in the working dtype and take the lowest face index
+among the faces within ``PATCH_TIE_EPSILONS`` epsilons of the coordinates' magnitude (``M``, the
+largest absolute vertex coordinate, plus the point's) of the nearest distance: an exact tie in
+exact arithmetic (a point on the mirror plane of two faces, common on regular meshes) then goes
+the same way on both backends, whose distance codes round differently. The point and its
+barycentric weights on the chosen triangle come from
 :func:`geomjax._geometry.closest_point_on_triangle` on both backends.
 """
 
@@ -24,12 +28,16 @@ import numpy as np
 
 from .._geometry import closest_point_on_triangle
 from ._surface_clusters import ClusterPatches
+from ._triangulation import column_max, column_min
 
 __all__ = ["PatchProjector"]
 
 # Padded sizes are powers of two from these: the JAX programs compile once per bucket of sizes.
 MIN_PAIRS = 1024
 MIN_POINTS = 64
+# Tie tolerance of the nearest face, in epsilons of the working dtype times the coordinates'
+# magnitude: well above the rounding of a point-triangle distance (a few epsilons of it).
+PATCH_TIE_EPSILONS = 64
 
 
 class PatchProjector:
@@ -49,13 +57,16 @@ class PatchProjector:
         self.host_faces = np.ascontiguousarray(faces, np.int32)
         self.faces = jax.device_put(self.host_faces, self.device)
         self.offsets, self.candidates = patches.offsets, patches.faces
+        magnitude = float(np.max(np.maximum(-column_min(self.host_vertices), column_max(self.host_vertices))))
+        self.tie = (PATCH_TIE_EPSILONS * float(np.finfo(self.host_vertices.dtype).eps), magnitude)
         self.search = None
         if backend == "warp":
             import warp
 
             from warp_ffi.remesh import PatchSearch
 
-            self.search = PatchSearch(self.host_vertices, self.host_faces, self.offsets, self.candidates, str(warp.device_from_jax(self.device)))
+            device = str(warp.device_from_jax(self.device))
+            self.search = PatchSearch(self.host_vertices, self.host_faces, self.offsets, self.candidates, device, self.tie)
 
     def __call__(self, targets: np.ndarray, clusters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         targets = np.ascontiguousarray(targets, self.host_vertices.dtype)
@@ -86,7 +97,8 @@ class PatchProjector:
         num_pairs = _bucket(pair_point.size, MIN_PAIRS)
         pair_point = np.concatenate([pair_point, np.full(num_pairs - pair_point.size, num_points - 1, np.int32)])
         pair_face = _pad(pair_face, num_pairs)
-        found = _nearest_pair_faces(self.vertices, self.faces, _pad(targets, num_points), pair_point, pair_face)
+        tie = np.asarray(self.tie, targets.dtype)
+        found = _nearest_pair_faces(self.vertices, self.faces, _pad(targets, num_points), pair_point, pair_face, tie)
         return np.asarray(found)[:count]
 
 
@@ -100,16 +112,18 @@ def _pad(rows: np.ndarray, size: int) -> np.ndarray:
 
 
 @jax.jit
-def _nearest_pair_faces(vertices, faces, points, pair_point, pair_face):
-    """The nearest candidate face of each point (ties: the lowest face index)."""
+def _nearest_pair_faces(vertices, faces, points, pair_point, pair_face, tie):
+    """The nearest candidate face of each point (ties, within ``tie = (relative, magnitude)``:
+    the lowest face index), as the Warp kernel decides."""
     num_points = points.shape[0]
     corners = vertices[faces[pair_face]]
     at = points[pair_point]
     closest, _ = closest_point_on_triangle(at, corners[:, 0], corners[:, 1], corners[:, 2])
     offset = at - closest
-    distance = jnp.sum(offset * offset, axis=-1)
-    nearest = jax.ops.segment_min(distance, pair_point, num_segments=num_points)
-    tied = jnp.where(distance == nearest[pair_point], pair_face, faces.shape[0])
+    distance2 = jnp.sum(offset * offset, axis=-1)
+    nearest2 = jax.ops.segment_min(distance2, pair_point, num_segments=num_points)
+    limit = jnp.sqrt(nearest2) + tie[0] * (tie[1] + jnp.max(jnp.abs(points), axis=-1))
+    tied = jnp.where(distance2 <= jnp.square(limit)[pair_point], pair_face, faces.shape[0])
     return jax.ops.segment_min(tied, pair_point, num_segments=num_points)
 
 

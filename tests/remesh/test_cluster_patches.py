@@ -116,6 +116,30 @@ def test_backends_agree():
     assert all(jax_out[1][k] in candidates[offsets[k] : offsets[k + 1]] for k in range(NUM_CLUSTERS))
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_near_ties_between_faces_go_alike_on_both_backends(dtype):
+    # 300 valleys (two faces mirrored across the plane x = 0) in random orientations, each its
+    # own cluster, and a target on each valley's mirror plane: in exact arithmetic it is as far
+    # from both faces, at different closest points. The backends measure with different code, so
+    # their rounding would pick different faces; within the tie tolerance both take the lower
+    # index (here the first face of each valley), and the same position.
+    rng = np.random.default_rng(4)
+    count = 300
+    valley = np.array([[0.0, -1.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.8], [1.0, 0.0, 0.8]])
+    rotations = np.linalg.qr(rng.normal(size=(count, 3, 3)))[0]
+    centres = rng.uniform(-2, 2, (count, 3))
+    vertices = (np.einsum("kij,vj->kvi", rotations, valley) + centres[:, None]).reshape(-1, 3).astype(dtype)
+    faces = (4 * np.arange(count)[:, None, None] + np.array([[0, 1, 2], [1, 0, 3]])).reshape(-1, 3)
+    labels = np.repeat(np.arange(count), 4)
+    local = np.stack([np.zeros(count), rng.uniform(-0.5, 0.5, count), rng.uniform(0.9, 1.5, count)], axis=1)
+    targets = (np.einsum("kij,kj->ki", rotations, local) + centres).astype(dtype)
+    patches = ClusterPatches.of(faces, labels, count)
+    jax_out, warp_out = (PatchProjector(jnp.asarray(vertices), faces, patches, backend)(targets) for backend in BACKENDS)
+    np.testing.assert_array_equal(jax_out[1], 2 * np.arange(count))
+    np.testing.assert_array_equal(warp_out[1], 2 * np.arange(count))
+    np.testing.assert_array_equal(jax_out[0], warp_out[0])
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_cluster_s_point_stays_on_its_own_sheet(backend):
     # Two parallel squares 0.01 apart, one cluster each: a target nearer the other sheet still
