@@ -416,6 +416,17 @@ def _closer(d2: Any, j: int, best_d2: Any, best: int):
     return d2 < best_d2 or (d2 == best_d2 and j < best)
 
 
+@wp.func
+@no_type_check
+def _nearer(p: Any, centroids: wp.array(dtype=Any), j: int, best: int, best_d2: Any):
+    """``(best, best_d2)`` updated with centroid ``j``."""
+    d = centroids[j] - p
+    d2 = wp.dot(d, d)
+    if _closer(d2, j, best_d2, best):
+        return j, d2
+    return best, best_d2
+
+
 @wp.kernel
 @no_type_check
 def _centroid_gap_kernel(grid: wp.uint64, centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), gaps: wp.array(dtype=Any)):
@@ -436,47 +447,37 @@ def _centroid_gap_kernel(grid: wp.uint64, centroids: wp.array(dtype=Any), params
 
 @wp.kernel
 @no_type_check
-def _centroid_neighbour_count_kernel(grid: wp.uint64, centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), counts: wp.array(dtype=wp.int32)):
+def _centroid_neighbours_kernel(
+    grid: wp.uint64, centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), offsets: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32), neighbours: wp.array(dtype=wp.int32), distances: wp.array(dtype=Any),
+):  # fmt: skip
+    # Each centroid's other centroids within the outer radius: counted, and given offsets (the
+    # counts' running sums), also listed from offsets[k] by distance (ties: the lower index;
+    # sorted by insertion, a few dozen each).
     k = wp.tid()
     c = centroids[k]
     r = params[2]
+    listing = offsets.shape[0] > 0
+    start = int(0)
+    if listing:
+        start = offsets[k]
     n = int(0)
     query = wp.hash_grid_query(grid, c, r)
     j = int(0)
     while wp.hash_grid_query_next(query, j):
         d = centroids[j] - c
         if j != k and wp.dot(d, d) < r * r:
+            if listing:
+                length = wp.length(d)
+                at = start + n
+                while at > start and (distances[at - 1] > length or (distances[at - 1] == length and neighbours[at - 1] > j)):
+                    distances[at] = distances[at - 1]
+                    neighbours[at] = neighbours[at - 1]
+                    at -= 1
+                distances[at] = length
+                neighbours[at] = j
             n += 1
     counts[k] = n
-
-
-@wp.kernel
-@no_type_check
-def _centroid_neighbour_fill_kernel(
-    grid: wp.uint64, centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), offsets: wp.array(dtype=wp.int32),
-    neighbours: wp.array(dtype=wp.int32), distances: wp.array(dtype=Any),
-):  # fmt: skip
-    # Each centroid's other centroids within the outer radius, by distance (ties: lower index),
-    # sorted by insertion (a few dozen each).
-    k = wp.tid()
-    c = centroids[k]
-    r = params[2]
-    start = offsets[k]
-    n = int(0)
-    query = wp.hash_grid_query(grid, c, r)
-    j = int(0)
-    while wp.hash_grid_query_next(query, j):
-        d = centroids[j] - c
-        if j != k and wp.dot(d, d) < r * r:
-            length = wp.length(d)
-            at = start + n
-            while at > start and (distances[at - 1] > length or (distances[at - 1] == length and neighbours[at - 1] > j)):
-                distances[at] = distances[at - 1]
-                neighbours[at] = neighbours[at - 1]
-                at -= 1
-            distances[at] = length
-            neighbours[at] = j
-            n += 1
 
 
 @wp.kernel
@@ -505,12 +506,7 @@ def _nearest_centroid_kernel(
                 for e in range(offsets[own], offsets[own + 1]):
                     if distances[e] > reach:
                         break
-                    j = neighbours[e]
-                    d = centroids[j] - p
-                    d2 = wp.dot(d, d)
-                    if _closer(d2, j, best_d2, best):
-                        best = j
-                        best_d2 = d2
+                    best, best_d2 = _nearer(p, centroids, neighbours[e], best, best_d2)
                 labels[i] = best
                 return
         else:
@@ -541,11 +537,7 @@ def _nearest_centroid_kernel(
         d = centroids[0] - p
         best_d2 = wp.dot(d, d)
         for k in range(1, centroids.shape[0]):
-            d = centroids[k] - p
-            d2 = wp.dot(d, d)
-            if _closer(d2, k, best_d2, best):
-                best = k
-                best_d2 = d2
+            best, best_d2 = _nearer(p, centroids, k, best, best_d2)
     labels[i] = best
 
 
@@ -555,8 +547,7 @@ def _centroid_types(scalar) -> dict:
 
 _nearest_centroid = Overloads(_nearest_centroid_kernel, _centroid_types)
 _centroid_gap = Overloads(_centroid_gap_kernel, _centroid_types)
-_neighbour_count = Overloads(_centroid_neighbour_count_kernel, _centroid_types)
-_neighbour_fill = Overloads(_centroid_neighbour_fill_kernel, _centroid_types)
+_centroid_neighbours = Overloads(_centroid_neighbours_kernel, _centroid_types)
 
 
 def nearest_centroids(
@@ -586,17 +577,20 @@ def nearest_centroids(
     # Unused inputs are empty arrays (the kernel reads their sizes).
     gaps = wp.zeros(num if previous is not None and not with_lists else 0, dtype=scalar, device=device)
     offsets = np.zeros(num + 1 if with_lists else 0, np.int32)
+    none = wp.empty(0, dtype=wp.int32, device=device)
     with GRID_LOCK:
         grid = hash_grid(centroids_wp, cell_width, dims)
         if with_lists:
+            # Count, then list.
             counts = wp.empty(num, dtype=wp.int32, device=device)
-            wp.launch(_neighbour_count(dtype), dim=num, inputs=[grid.id, centroids_wp, params], outputs=[counts], device=device)
+            launch_lists = functools.partial(wp.launch, _centroid_neighbours(dtype), dim=num, device=device)
+            launch_lists(inputs=[grid.id, centroids_wp, params, none], outputs=[counts, none, wp.empty(0, dtype=scalar, device=device)])
             np.cumsum(counts.numpy(), out=offsets[1:])
         offsets_wp: wp.array = wp.array(offsets, dtype=wp.int32, device=device)
         neighbours = wp.empty(int(offsets[-1]) if with_lists else 0, dtype=wp.int32, device=device)
         distances = wp.empty(neighbours.shape[0], dtype=scalar, device=device)
         if with_lists:
-            wp.launch(_neighbour_fill(dtype), dim=num, inputs=[grid.id, centroids_wp, params, offsets_wp], outputs=[neighbours, distances], device=device)
+            launch_lists(inputs=[grid.id, centroids_wp, params, offsets_wp], outputs=[counts, neighbours, distances])
         elif gaps.shape[0]:
             wp.launch(_centroid_gap(dtype), dim=num, inputs=[grid.id, centroids_wp, params], outputs=[gaps], device=device)
         inputs = [grid.id, points_wp, centroids_wp, params, previous_wp, gaps, offsets_wp, neighbours, distances]
