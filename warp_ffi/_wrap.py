@@ -136,17 +136,20 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="geomjax-warp")
 
 
-def launch_in_chunks(kernel, num_batch: int, num_items: int, inputs: list, outputs: list, accumulated=(), *, min_chunk: int = MIN_CHUNK):
+def launch_in_chunks(
+    kernel, num_batch: int, num_items: int, inputs: list, outputs: list, accumulated=(), *, min_chunk: int = MIN_CHUNK, spare_threads: int = 0
+):  # fmt: skip
     """Launch ``kernel`` over ``(num_batch, num_items)``, in parallel chunks of items on CPU.
 
     The kernel's last input is an ``offset`` added to its item index; ``inputs`` end just before
     it. ``accumulated`` lists the positions in ``outputs`` that the kernel adds into (they hold
     zeros, or whatever is to be added to): on CPU each further worker adds into a private zeroed
     copy, summed in at the end, because Warp's CPU atomics are not thread-safe. On CUDA it is one
-    launch over all items.
+    launch over all items. ``spare_threads``: CPU threads to leave free (a caller that keeps
+    them busy meanwhile); at least one thread launches.
     """
     device = outputs[0].device
-    workers = cpu_threads() if device.is_cpu else 1
+    workers = max(1, cpu_threads() - spare_threads) if device.is_cpu else 1
     num_chunks = min(4 * workers, max(1, num_items // min_chunk))
     if workers == 1 or num_chunks == 1:
         warp.launch(kernel, dim=(num_batch, num_items), inputs=[*inputs, 0], outputs=outputs, device=device)

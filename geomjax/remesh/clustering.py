@@ -549,11 +549,14 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device):
     cell = 2 * radius
     low, high = column_min(x) - radius, column_max(x) + radius
     dims = table_dims(low, high, cell, (resolution,) * 3)
+    # One core is left to the edge graph (or the reference's search tree), built meanwhile on the
+    # background thread.
+    nearest = functools.partial(nearest_centroids, x, radius=radius, cell_width=cell, dims=dims, device=warp_device, spare_threads=1)
     labels = None
     for _ in range(iterations):
-        labels = nearest_centroids(x, centroids, radius, cell, dims, warp_device, labels)
+        labels = nearest(centroids=centroids, previous=labels)
         centroids = cluster_means(x, mass, labels, centroids)
-    return centroids, nearest_centroids(x, centroids, radius, cell, dims, warp_device, labels)
+    return centroids, nearest(centroids=centroids, previous=labels)
 
 
 def _lloyd_jax(x, mass, centroids, iterations, device):
