@@ -142,8 +142,9 @@ def remeshing(
        it to the point closest to the planes of the cluster's triangles, along the directions
        in which they bend (across a crease, onto a tip), so that features are not cut off, and
        takes the closest point of the cluster's own *patch* (the source triangles with a
-       corner in the cluster; ties: the lowest triangle index), which keeps it on its own sheet
-       where the surface passes close to itself.
+       corner in the cluster; ties, distances within 64 epsilons of the coordinates'
+       magnitude: the lowest triangle index, alike on both backends), which keeps it on its
+       own sheet where the surface passes close to itself.
     5. Topology: every input triangle is relabelled by its vertices' clusters; triangles with a
        repeated label are dropped, duplicates (in any orientation) keep their first occurrence,
        triangles of zero area after projection are dropped (geomjax first puts their corners
