@@ -581,25 +581,26 @@ def nearest_centroids(
     previous_wp: wp.array = wp.array(np.zeros(0, np.int32) if previous is None else previous.astype(np.int32), dtype=wp.int32, device=device)
     num = centroids.shape[0]
     with_lists = previous is not None and points.shape[0] >= NEIGHBOUR_LIST_MIN_POINTS * num
-    # Unused inputs are empty arrays (the kernel reads their sizes).
+    # Unused inputs are empty arrays (the kernels read their sizes).
     gaps = wp.zeros(num if previous is not None and not with_lists else 0, dtype=scalar, device=device)
-    offsets = np.zeros(num + 1 if with_lists else 0, np.int32)
-    none = wp.empty(0, dtype=wp.int32, device=device)
     with GRID_LOCK:
         grid = hash_grid(centroids_wp, cell_width, dims)
         if with_lists:
-            # Count, then list.
             counts = wp.empty(num, dtype=wp.int32, device=device)
+            unlisted = [wp.empty(0, dtype=wp.int32, device=device), wp.empty(0, dtype=scalar, device=device)]
             launch_lists = functools.partial(wp.launch, _centroid_neighbours(dtype), dim=num, device=device)
-            launch_lists(inputs=[grid.id, centroids_wp, params, none], outputs=[counts, none, wp.empty(0, dtype=scalar, device=device)])
+            # Count (no offsets: nothing listed), then list from the counts' running sums.
+            launch_lists(inputs=[grid.id, centroids_wp, params, unlisted[0]], outputs=[counts, *unlisted])
+            offsets = np.zeros(num + 1, np.int32)
             np.cumsum(counts.numpy(), out=offsets[1:])
-        offsets_wp: wp.array = wp.array(offsets, dtype=wp.int32, device=device)
-        neighbours = wp.empty(int(offsets[-1]) if with_lists else 0, dtype=wp.int32, device=device)
-        distances = wp.empty(neighbours.shape[0], dtype=scalar, device=device)
-        if with_lists:
+            offsets_wp: wp.array = wp.array(offsets, dtype=wp.int32, device=device)
+            neighbours = wp.empty(int(offsets[-1]), dtype=wp.int32, device=device)
+            distances = wp.empty(int(offsets[-1]), dtype=scalar, device=device)
             launch_lists(inputs=[grid.id, centroids_wp, params, offsets_wp], outputs=[counts, neighbours, distances])
-        elif gaps.shape[0]:
-            wp.launch(_centroid_gap(dtype), dim=num, inputs=[grid.id, centroids_wp, params], outputs=[gaps], device=device)
+        else:
+            offsets_wp, neighbours, distances = (wp.empty(0, dtype=kind, device=device) for kind in (wp.int32, wp.int32, scalar))
+            if gaps.shape[0]:
+                wp.launch(_centroid_gap(dtype), dim=num, inputs=[grid.id, centroids_wp, params], outputs=[gaps], device=device)
         inputs = [grid.id, points_wp, centroids_wp, params, previous_wp, gaps, offsets_wp, neighbours, distances]
         launch_in_chunks(_nearest_centroid(dtype), 1, points.shape[0], inputs, [labels], spare_threads=spare_threads)
     return labels.numpy()
