@@ -10,8 +10,10 @@ JAX calls then reuse:
   ``mesh_words``), :func:`refit_mesh`; ``warp_ffi._grid.build_mesh`` builds the ``wp.Mesh``.
 * Poisson-disk sampling (``warp_ffi.poisson`` re-exports these): :func:`reject_near_accepted`,
   :func:`resolve_conflicts`, :func:`neighbour_lists` and :func:`eliminate`.
-* The clustering remesher's :func:`nearest_centroids`, and :class:`PatchSearch` with
-  :func:`patch_closest_faces` (re-exported by ``warp_ffi.remesh``).
+* The clustering remesher's :func:`nearest_centroids`, :class:`PatchSearch` with
+  :func:`patch_closest_faces`, and :class:`EdgeGraph` with :func:`grow_forest` (its clusters as
+  a shortest-path forest of the edge graph, updated where the seeds changed), re-exported by
+  ``warp_ffi.remesh``.
 
 Inputs arrive validated (no checks here).
 
@@ -70,7 +72,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "PatchSearch", "patch_closest_faces",
+    "nearest_centroids", "PatchSearch", "patch_closest_faces", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -755,3 +757,188 @@ def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.nda
     ]
     launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=search.min_chunk)
     return found.numpy()
+
+
+# ---------------------------------------------------------------------------------------------
+# Shortest-path forests on a mesh's edge graph.
+
+
+@wp.func
+@no_type_check
+def _shorter(distance_a: wp.float64, label_a: wp.int32, distance_b: wp.float64, label_b: wp.int32):
+    """Forest order: the shorter distance first, ties to the lower label."""
+    return distance_a < distance_b or (distance_a == distance_b and label_a < label_b)
+
+
+@wp.func
+@no_type_check
+def _forest_push(
+    heap_distance: wp.array(dtype=wp.float64), heap_label: wp.array(dtype=wp.int32), heap_vertex: wp.array(dtype=wp.int32),
+    size: wp.int32, distance: wp.float64, label: wp.int32, vertex: wp.int32, overflow: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """Adds an entry to the binary min-heap of ``size`` entries; returns the new size. A full
+    heap drops it and raises ``overflow[0]`` (the caller then starts over another way)."""
+    if size == heap_vertex.shape[0]:
+        overflow[0] = 1
+        return size
+    at = size
+    while at > 0:
+        parent = (at - 1) // 2
+        if not _shorter(distance, label, heap_distance[parent], heap_label[parent]):
+            break
+        heap_distance[at] = heap_distance[parent]
+        heap_label[at] = heap_label[parent]
+        heap_vertex[at] = heap_vertex[parent]
+        at = parent
+    heap_distance[at] = distance
+    heap_label[at] = label
+    heap_vertex[at] = vertex
+    return size + 1
+
+
+@wp.func
+@no_type_check
+def _forest_pop(
+    heap_distance: wp.array(dtype=wp.float64), heap_label: wp.array(dtype=wp.int32), heap_vertex: wp.array(dtype=wp.int32), size: wp.int32
+):  # fmt: skip
+    """Drops the first entry of the heap of ``size`` entries; returns the new size."""
+    size = size - 1
+    distance = heap_distance[size]
+    label = heap_label[size]
+    vertex = heap_vertex[size]
+    at = int(0)
+    while 2 * at + 1 < size:
+        child = 2 * at + 1
+        if child + 1 < size and _shorter(heap_distance[child + 1], heap_label[child + 1], heap_distance[child], heap_label[child]):
+            child = child + 1
+        if not _shorter(heap_distance[child], heap_label[child], distance, label):
+            break
+        heap_distance[at] = heap_distance[child]
+        heap_label[at] = heap_label[child]
+        heap_vertex[at] = heap_vertex[child]
+        at = child
+    heap_distance[at] = distance
+    heap_label[at] = label
+    heap_vertex[at] = vertex
+    return size
+
+
+@wp.kernel
+@no_type_check
+def _grow_forest_kernel(
+    row_offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), lengths: wp.array(dtype=wp.float64),
+    cleared: wp.array(dtype=wp.int32), seeds: wp.array(dtype=wp.int32), seed_labels: wp.array(dtype=wp.int32),
+    distance: wp.array(dtype=wp.float64), label: wp.array(dtype=wp.int32), parent: wp.array(dtype=wp.int32),
+    heap_distance: wp.array(dtype=wp.float64), heap_label: wp.array(dtype=wp.int32), heap_vertex: wp.array(dtype=wp.int32),
+    overflow: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    unreached = wp.float64(wp.inf)
+    for k in range(cleared.shape[0]):
+        distance[cleared[k]] = unreached
+        parent[cleared[k]] = -1
+    # Each cleared vertex starts from its best kept neighbour (their paths are still shortest);
+    # the candidates go to the heap first and to the vertices after, so that no cleared vertex
+    # reads another's candidate.
+    size = int(0)
+    for k in range(cleared.shape[0]):
+        v = cleared[k]
+        best = unreached
+        best_label = int(0)
+        for e in range(row_offsets[v], row_offsets[v + 1]):
+            u = columns[e]
+            if distance[u] < unreached:
+                d = distance[u] + lengths[e]
+                if best == unreached or _shorter(d, label[u], best, best_label):
+                    best = d
+                    best_label = label[u]
+                    parent[v] = u
+        if best < unreached:
+            size = _forest_push(heap_distance, heap_label, heap_vertex, size, best, best_label, v, overflow)
+    for k in range(size):
+        distance[heap_vertex[k]] = heap_distance[k]
+        label[heap_vertex[k]] = heap_label[k]
+    for k in range(seeds.shape[0]):
+        s = seeds[k]
+        if _shorter(wp.float64(0.0), seed_labels[k], distance[s], label[s]):
+            distance[s] = wp.float64(0.0)
+            label[s] = seed_labels[k]
+            parent[s] = -1
+            size = _forest_push(heap_distance, heap_label, heap_vertex, size, wp.float64(0.0), seed_labels[k], s, overflow)
+    # Dijkstra on (distance, label) with lazy deletion: an entry whose vertex has changed since is
+    # stale. A vertex takes a shorter path (or as short, from a lower label); a kept vertex also
+    # follows its parent's new value when that is no longer (as short and of its label): rounding
+    # can give two paths of different lengths the same sum, and a vertex must keep a parent of
+    # its own label, or its cluster would fall apart.
+    # A valid forest pops each entry once; more pops than the heap holds mean the arrays were not
+    # a forest of the previous seeds (which could cycle): stop and report it as an overflow.
+    pops = int(0)
+    while size > 0:
+        pops += 1
+        if pops > heap_vertex.shape[0]:
+            overflow[0] = 1
+            break
+        v = heap_vertex[0]
+        d = heap_distance[0]
+        own = heap_label[0]
+        size = _forest_pop(heap_distance, heap_label, heap_vertex, size)
+        if d == distance[v] and own == label[v]:
+            for e in range(row_offsets[v], row_offsets[v + 1]):
+                j = columns[e]
+                reach = d + lengths[e]
+                if _shorter(reach, own, distance[j], label[j]) or (parent[j] == v and (reach != distance[j] or own != label[j])):
+                    distance[j] = reach
+                    label[j] = own
+                    parent[j] = v
+                    size = _forest_push(heap_distance, heap_label, heap_vertex, size, reach, own, j, overflow)
+
+
+class EdgeGraph:
+    """A symmetric edge graph in CSR form (``row_offsets`` ``(V + 1,)``, ``columns``, positive
+    float64 ``lengths``) and the heap of :func:`grow_forest`, kept on the CPU between calls."""
+
+    def __init__(self, row_offsets: np.ndarray, columns: np.ndarray, lengths: np.ndarray):
+        device = "cpu"
+        self.arrays: list[wp.array] = [
+            wp.array(np.ascontiguousarray(row_offsets, np.int32), dtype=wp.int32, device=device),
+            wp.array(np.ascontiguousarray(columns, np.int32), dtype=wp.int32, device=device),
+            wp.array(np.ascontiguousarray(lengths, np.float64), dtype=wp.float64, device=device),
+        ]
+        # A push improves a vertex or moves it with its parent: about once per cleared vertex,
+        # seed and edge of an expanded vertex (each vertex is expanded about once).
+        capacity = 2 * (row_offsets.size - 1) + columns.size + 1
+        self.heap = [wp.empty(capacity, dtype=kind, device=device) for kind in (wp.float64, wp.int32, wp.int32)]
+        self.overflow = wp.zeros(1, dtype=wp.int32, device=device)
+
+
+def grow_forest(
+    graph: EdgeGraph, distance: np.ndarray, labels: np.ndarray, parents: np.ndarray, cleared: np.ndarray, seeds: np.ndarray, seed_labels: np.ndarray
+) -> bool:  # fmt: skip
+    """Updates a shortest-path forest in place after its seeds changed; False if it could not.
+
+    ``distance`` ``(V,)`` float64, ``labels`` and ``parents`` ``(V,)`` int32 (C-contiguous,
+    modified in place) are each vertex's distance from its seed along the edges, the seed's
+    label and the neighbour it is reached from (negative for a seed or an unreached vertex), a
+    shortest-path forest of the previous seeds. ``cleared`` (int32 vertex indices): the vertices
+    whose seed is gone (all, with infinite distances, to start from nothing); ``seeds`` and
+    ``seed_labels`` (int32): the current seeds. A label whose seed moved must have all its
+    vertices cleared. On return each reached vertex holds its shortest distance to a seed and
+    the label of a seed at that distance, reached from a neighbour of the same label (so every
+    cluster is connected); a vertex whose value changed took the lowest such label. An unreached
+    cleared vertex keeps its label with an infinite distance. Expands only the vertices whose
+    value changes (a sequential CPU kernel). False (the arrays then are not a forest): the heap
+    overflowed, or the update did not end within as many steps as the heap holds (arrays that
+    were not a forest of the previous seeds); start over from nothing.
+    """
+    device = "cpu"
+
+    def as_int(values: np.ndarray) -> wp.array:
+        return wp.array(np.ascontiguousarray(values, np.int32), dtype=wp.int32, device=device)
+
+    graph.overflow.zero_()
+    inputs = [*graph.arrays, as_int(cleared), as_int(seeds), as_int(seed_labels)]
+    # Wrapped, not copied: the kernel writes the caller's arrays.
+    state: list[wp.array] = [
+        wp.array(a, dtype=kind, device=device, copy=False) for a, kind in ((distance, wp.float64), (labels, wp.int32), (parents, wp.int32))
+    ]
+    wp.launch(_grow_forest_kernel, dim=1, inputs=inputs, outputs=[*state, *graph.heap, graph.overflow], device=device)
+    return not graph.overflow.numpy()[0]

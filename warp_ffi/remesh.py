@@ -5,6 +5,8 @@ Host-side NumPy functions; they live in :mod:`warp_ffi.host` with the other host
 points and are re-exported here under the names geomjax imports.
 """
 
+from .host import EdgeGraph as EdgeGraph
 from .host import PatchSearch as PatchSearch
+from .host import grow_forest as grow_forest
 from .host import nearest_centroids as nearest_centroids
 from .host import patch_closest_faces as patch_closest_faces

@@ -25,7 +25,7 @@ from ..sample.farthest import farthest_point_sampling
 from ._flips import delaunay_flips, fold_flips
 from ._patch_projection import PatchProjector
 from ._quadrics import ClusterQuadrics
-from ._surface_clusters import ClusterPatches, MeshEdges, cluster_means, connected_clusters, mend_tears
+from ._surface_clusters import ClusterPatches, MeshEdges, SeedForest, cluster_means, connected_clusters, mend_tears
 from ._triangulation import (
     bending_density,
     boundary_vertices,
@@ -386,8 +386,10 @@ def remesh_with_sources(
         return _result(positions, triangles, source_faces, barycentric, index_dtype, device)
     assert edge_graph is not None  # submitted unless the reference returned above
     edges = edge_graph.result()
-    centroids, labels, distance = connected_clusters(edges, x, mass, centroids, labels, GRAPH_LLOYD_ROUNDS)
-    centroids, labels = mend_tears(edges, x, faces, mass, centroids, labels, distance, TEAR_REPAIR_ROUNDS)
+    forest = SeedForest(edges, labels, n_clusters)
+    centroids = connected_clusters(forest, x, mass, centroids, GRAPH_LLOYD_ROUNDS)
+    centroids = mend_tears(edges, forest, x, faces, mass, centroids, TEAR_REPAIR_ROUNDS)
+    labels = forest.labels
 
     # 4. A point per cluster on its patch of the source surface, in the input frame.
     patches = ClusterPatches.of(faces, labels, n_clusters)
