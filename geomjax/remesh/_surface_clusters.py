@@ -22,6 +22,10 @@ from ._triangulation import distinct_triangles, half_edges, row_dot
 
 __all__ = ["ClusterPatches", "MeshEdges", "SeedForest", "cluster_means", "connected_clusters", "mend_tears"]
 
+# Below this many vertices SciPy's whole Dijkstra costs less than a kernel launch with its
+# arrays (decimated-knight, 502 vertices: 0.3 ms more per remesh with the kernel; even at 3,600).
+FOREST_KERNEL_MIN_VERTICES = 2000
+
 
 class MeshEdges(NamedTuple):
     """The undirected edges of a triangle mesh, computed once per remesh.
@@ -110,13 +114,14 @@ class SeedForest:
 
     Each vertex belongs to the seed nearest along the edges, reached from a neighbour of its own
     cluster (so every cluster is connected); a vertex that no seed reaches keeps its label with
-    an infinite distance. The first assignment is SciPy's multi-source Dijkstra; later ones (with
-    warp-lang installed) update the forest in a Warp kernel that clears only the vertices of the
-    labels whose seed changed and grows them back from their kept neighbours and the new seeds,
-    at a cost proportional to what changes (the graph Lloyd and mending rounds move a fifth of
-    the seeds or fewer: armadillo@500's five later assignments 29 -> 7 ms). The distances are
-    the same either way; between seeds at exactly the same distance each picks one
-    deterministically (SciPy by its heap, the update the lowest label among a changed vertex's).
+    an infinite distance. The first assignment is SciPy's multi-source Dijkstra. Later ones, with
+    warp-lang installed and at least ``FOREST_KERNEL_MIN_VERTICES`` vertices, update the forest
+    in a Warp kernel that clears only the vertices of the labels whose seed changed and grows
+    them back from their kept neighbours and the new seeds: its cost follows what changes (the
+    graph Lloyd and mending rounds move a fifth of the seeds or fewer). The distances are the
+    same either way; between seeds at exactly the same distance each picks one,
+    deterministically (SciPy by its heap order, the update the lowest label among a changed
+    vertex's).
 
     Attributes:
         labels: ``(V,)`` int32, each vertex's cluster.
@@ -138,7 +143,7 @@ class SeedForest:
         seed_of = np.full(self.num_clusters, -1, np.int64)
         seed_of[seed_labels] = seeds
         previous, self.seed_of = self.seed_of, seed_of
-        if previous is not None and warp_available():
+        if previous is not None and self.labels.size >= FOREST_KERNEL_MIN_VERTICES and warp_available():
             from warp_ffi.remesh import EdgeGraph, grow_forest
 
             if self._kernel_graph is None:

@@ -79,6 +79,7 @@ def _moves(edges: MeshEdges, num_clusters: int, rng):
 def test_forest_is_the_nearest_seed_along_the_edges(surface, with_warp, monkeypatch):
     if with_warp:
         pytest.importorskip("warp")
+        monkeypatch.setattr(surface_clusters, "FOREST_KERNEL_MIN_VERTICES", 0)
     else:  # SciPy from scratch every time
         monkeypatch.setattr(surface_clusters, "warp_available", lambda: False)
     vertices, faces = _grid(12) if surface == "grid" else _jittered_spheres()
@@ -127,6 +128,7 @@ def test_a_full_heap_falls_back_to_scipy(monkeypatch):
             small_heaps.append(self)
 
     monkeypatch.setattr("warp_ffi.remesh.EdgeGraph", SmallHeap)
+    monkeypatch.setattr(surface_clusters, "FOREST_KERNEL_MIN_VERTICES", 0)
     for forest, seed_of in _moves(edges, 16, np.random.default_rng(3)):
         before = forest.labels.copy()
         live = np.flatnonzero(seed_of >= 0)
