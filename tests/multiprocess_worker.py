@@ -1,14 +1,15 @@
 """One process of a multi-process run (``tests/test_multiprocess.py`` starts them).
 
-Usage: ``python -m tests.multiprocess_worker CASE PROCESS_ID NUM_PROCESSES PORT DEVICES_PER_PROCESS``
-(``CASE``: ``sdf``, ``rays``, ``shrinkwrap``, ``ffd``, ``rbf``, ``batch-ops`` or ``sobolev`` on both
-backends in turn, or with ``-jax`` / ``-warp`` on one; ``per-process-meshes``, ``global-meshes``).
+Usage: ``python -m tests.multiprocess_worker CASES PROCESS_ID NUM_PROCESSES PORT DEVICES_PER_PROCESS``
+(``CASES``: comma-separated, each ``sdf``, ``rays``, ``shrinkwrap``, ``ffd``, ``rbf``, ``batch-ops`` or
+``sobolev`` on both backends in turn, or with ``-jax`` / ``-warp`` on one; ``per-process-meshes``,
+``global-meshes``).
 The process joins ``jax.distributed`` with its coordinator on 127.0.0.1 (Gloo collectives on
 CPU), builds its part of each global array with ``jax.make_array_from_process_local_data`` (the
 rows that the sharding's ``addressable_devices_indices_map`` gives it), runs the case jitted on
 the global arrays and, on its own devices alone, the same computation unsharded as the
-reference, and prints one JSON line: the case, its rows and the largest relative difference
-(also per backend).
+reference, and prints one JSON line per case: the case, its rows and the largest relative
+difference (also per backend).
 """
 
 from __future__ import annotations
@@ -116,13 +117,15 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(coordinator_address=f"127.0.0.1:{port}", num_processes=num_processes, process_id=process_id, initialization_timeout=60)
-    # A case without a backend suffix runs on both backends in the same processes (starting and
-    # joining them costs more than most cases), each from the same inputs.
-    backend_cases = [case] if case.endswith(("-jax", "-warp")) or case.endswith("meshes") else [f"{case}-jax", f"{case}-warp"]
-    results = [_run_case(one, process_id) for one in backend_cases]
-    result = dict(results[-1], case=case, max_relative_difference=max(r["max_relative_difference"] for r in results))
-    result["per_backend"] = {r["case"]: r["max_relative_difference"] for r in results}
-    print(json.dumps(result), flush=True)
+    # Starting and joining the processes costs more than most cases: CASE may list several
+    # (comma-separated), run one after the other, and a case without a backend suffix runs on
+    # both backends in turn, each from the same inputs. One JSON line per listed case.
+    for listed in case.split(","):
+        backend_cases = [listed] if listed.endswith(("-jax", "-warp")) or listed.endswith("meshes") else [f"{listed}-jax", f"{listed}-warp"]
+        results = [_run_case(one, process_id) for one in backend_cases]
+        result = dict(results[-1], case=listed, max_relative_difference=max(r["max_relative_difference"] for r in results))
+        result["per_backend"] = {r["case"]: r["max_relative_difference"] for r in results}
+        print(json.dumps(result), flush=True)
     jax.distributed.shutdown()
 
 
