@@ -772,6 +772,18 @@ def _shorter(distance_a: wp.float64, label_a: wp.int32, distance_b: wp.float64, 
 
 @wp.func
 @no_type_check
+def _heap_set(
+    heap_distance: wp.array(dtype=wp.float64), heap_label: wp.array(dtype=wp.int32), heap_vertex: wp.array(dtype=wp.int32),
+    at: wp.int32, distance: wp.float64, label: wp.int32, vertex: wp.int32,
+):  # fmt: skip
+    """Writes an entry to slot ``at`` of the forest heap."""
+    heap_distance[at] = distance
+    heap_label[at] = label
+    heap_vertex[at] = vertex
+
+
+@wp.func
+@no_type_check
 def _forest_push(
     heap_distance: wp.array(dtype=wp.float64), heap_label: wp.array(dtype=wp.int32), heap_vertex: wp.array(dtype=wp.int32),
     size: wp.int32, distance: wp.float64, label: wp.int32, vertex: wp.int32, overflow: wp.array(dtype=wp.int32),
@@ -786,13 +798,9 @@ def _forest_push(
         parent = (at - 1) // 2
         if not _shorter(distance, label, heap_distance[parent], heap_label[parent]):
             break
-        heap_distance[at] = heap_distance[parent]
-        heap_label[at] = heap_label[parent]
-        heap_vertex[at] = heap_vertex[parent]
+        _heap_set(heap_distance, heap_label, heap_vertex, at, heap_distance[parent], heap_label[parent], heap_vertex[parent])
         at = parent
-    heap_distance[at] = distance
-    heap_label[at] = label
-    heap_vertex[at] = vertex
+    _heap_set(heap_distance, heap_label, heap_vertex, at, distance, label, vertex)
     return size + 1
 
 
@@ -813,13 +821,9 @@ def _forest_pop(
             child = child + 1
         if not _shorter(heap_distance[child], heap_label[child], distance, label):
             break
-        heap_distance[at] = heap_distance[child]
-        heap_label[at] = heap_label[child]
-        heap_vertex[at] = heap_vertex[child]
+        _heap_set(heap_distance, heap_label, heap_vertex, at, heap_distance[child], heap_label[child], heap_vertex[child])
         at = child
-    heap_distance[at] = distance
-    heap_label[at] = label
-    heap_vertex[at] = vertex
+    _heap_set(heap_distance, heap_label, heap_vertex, at, distance, label, vertex)
     return size
 
 
