@@ -74,7 +74,15 @@ def _moves(edges: MeshEdges, num_clusters: int, rng):
         yield forest, seed_of
 
 
-@pytest.mark.parametrize("surface", ["grid", "spheres"])
+def _grid_with_coincident_columns():
+    """The grid with its columns 4 and 5 at the same place: zero-length edges (stored as the
+    smallest positive float) and ties everywhere beyond them."""
+    vertices, faces = _grid(12)
+    vertices[vertices[:, 0] == 5, 0] = 4.0
+    return vertices, faces
+
+
+@pytest.mark.parametrize("surface", ["grid", "coincident", "spheres"])
 @pytest.mark.parametrize("with_warp", [True, False])
 def test_forest_is_the_nearest_seed_along_the_edges(surface, with_warp, monkeypatch):
     if with_warp:
@@ -82,7 +90,7 @@ def test_forest_is_the_nearest_seed_along_the_edges(surface, with_warp, monkeypa
         monkeypatch.setattr(surface_clusters, "FOREST_KERNEL_MIN_VERTICES", 0)
     else:  # SciPy from scratch every time
         monkeypatch.setattr(surface_clusters, "warp_available", lambda: False)
-    vertices, faces = _grid(12) if surface == "grid" else _jittered_spheres()
+    vertices, faces = {"grid": lambda: _grid(12), "coincident": _grid_with_coincident_columns, "spheres": _jittered_spheres}[surface]()
     edges = MeshEdges.of(vertices, faces)
     for forest, seed_of in _moves(edges, 16, np.random.default_rng(0)):
         before = forest.labels.copy()
