@@ -111,6 +111,8 @@ def register_surface(
         regularization: ``>= 0``, weight of ``|L|^2 / A``, which keeps the lattice nodes that no
             vertex reaches at zero and the normal equations regular (default ``1e-10`` in
             float64, ``1e-6`` in float32; ``0`` fails where the template leaves nodes free).
+            The three weights are traced in the compiled solve: registering again with other
+            positive weights (a sweep) compiles nothing new; a zero weight drops its term.
         solver: an optimistix least-squares solver or minimiser (default: the dogleg
             trust-region method on the exact Hessian of the loss, an optimistix quasi-Newton
             minimiser whose Hessian is computed, with tolerances ``1e-5`` in float32, ``1e-8``
@@ -177,9 +179,12 @@ def register_surface(
     if solver is None:
         tolerance = _DEFAULT_TOLERANCE.get(jnp.dtype(dtype), 1e-5)
         solver = _NewtonTrustRegion(rtol=tolerance, atol=tolerance)
+    # Positive weights go in as arrays, traced in the compiled solve: a sweep over a weight
+    # compiles once (a zero weight drops its term, a different program).
+    traced_strain, traced_bending, traced_regularization = (jnp.asarray(w, dtype) if w > 0 else 0.0 for w in (strain_weight, bending_weight, regularization))
     options = dict(
-        origin=origin, extent=extent, basis=basis, strain_weight=strain_weight, bending_weight=bending_weight,
-        regularization=regularization, implementation=implementation, brute_force=brute_force,
+        origin=origin, extent=extent, basis=basis, strain_weight=traced_strain, bending_weight=traced_bending,
+        regularization=traced_regularization, implementation=implementation, brute_force=brute_force,
     )  # fmt: skip
     lattice0 = jnp.zeros((*resolution, 3), dtype)
     meshes = (template.points, template.cells, target.points, target.cells, tree, hinges)
@@ -260,7 +265,8 @@ class _DoglegDescent(optx.DoglegDescent):
 
 @eqx.filter_jit
 def _solve(lattice0, meshes, solver, max_steps: int, options: dict) -> optx.Solution:
-    """The least-squares solve, compiled once per shapes and options (arrays traced, the rest static)."""
+    """The least-squares solve, compiled once per shapes and options (arrays, the positive
+    weights among them, traced; the rest static)."""
     template_points, template_cells, target_points, target_cells, tree, hinges = meshes
     residuals = registration_residuals(template_cells, target_cells, tree, hinges, **options)
     solution: optx.Solution = optx.least_squares(
@@ -275,7 +281,8 @@ def registration_residuals(
     """The residual function ``residuals(lattice, (template_points, target_points))`` of
     :func:`register_surface` for validated cells, the target's search tree (``None``: built in
     each search, or ``brute_force`` in JAX), the template's hinges (``None``: no bending term)
-    and weights. Benchmarks hand it to other solvers.
+    and weights (non-negative numbers, a zero dropping its term, or scalar arrays, which keep
+    it). Benchmarks hand it to other solvers.
     """
 
     def nearest_faces(vertices, points):
@@ -295,18 +302,24 @@ def registration_residuals(
         a, b, c = (target_points[target_cells[face, k]] for k in range(3))
         distance = jnp.sum(triangle_normal(a, b, c) * (moved - a), axis=-1)
         parts = [jnp.sqrt(corner_areas / area) * distance / jnp.sqrt(area)]
-        if strain_weight > 0:
+        if _weighted(strain_weight):
             # Unit Lame parameters: mu = 1, lambda / 2 + mu / 2 = 1 for triangles.
             strains, _ = strain_residuals(moved[None], template_points[None], template_cells, 1.0, 1.0)
             parts.append(jnp.sqrt(strain_weight / area) * strains.reshape(-1))
         if hinges is not None:
             angles, _ = bending_residuals(moved[None], template_points[None], hinges)
             parts.append(jnp.sqrt(bending_weight / area) * angles.reshape(-1))
-        if regularization > 0:
+        if _weighted(regularization):
             parts.append(jnp.sqrt(regularization / area) * lattice.reshape(-1))
         return jnp.concatenate(parts)
 
     return residuals
+
+
+def _weighted(weight) -> bool:
+    """Whether a residual term is present: a weight given as an array (possibly traced), or a
+    positive number."""
+    return not isinstance(weight, int | float) or weight > 0
 
 
 def _corner_areas(points: jax.Array, faces: jax.Array) -> jax.Array:

@@ -12,6 +12,7 @@ from geomjax import Mesh, free_form_deform_points, icosphere, signed_distance_fi
 from geomjax.energy.bending import bending_residuals
 from geomjax.energy.strain import strain_residuals
 from geomjax.optimize import register_surface
+from geomjax.optimize import _registration as registration_module
 from geomjax.optimize._registration import registration_residuals
 
 BOX = {"origin": [-1.5, -1.5, -1.5], "extent": [3.0, 3.0, 3.0]}
@@ -74,7 +75,7 @@ def test_float32_registration_under_x64():
     assert _distances(moved.astype(jnp.float64), target.astype(jnp.float64), faces).max() < 1e-3
 
 
-def test_regularisers_and_their_effect():
+def test_regularisers_and_their_effect(monkeypatch):
     points, faces = _sphere()
     template, target = points * 0.9, points
     free = free_form_deform_points(template, register_surface(template, faces, target, faces, RESOLUTION, **BOX), **BOX)
@@ -83,10 +84,15 @@ def test_regularisers_and_their_effect():
     assert _distances(bent, target, faces).max() < 1e-4
     # Strain resists the stretch from 0.9 to 1: the template stays short of the target, more so
     # for a larger weight.
-    radii, lattices = [], []
+    # A positive weight is traced: the second solve reuses the first's program (no new trace).
+    traces = []
+    monkeypatch.setattr(registration_module, "registration_residuals", lambda *a, **k: traces.append(k) or registration_residuals(*a, **k))
+    radii, lattices, traced = [], [], []
     for weight in (1e-4, 1e-2):
         lattices.append(register_surface(template, faces, target, faces, RESOLUTION, strain_weight=weight, **BOX))
         radii.append(float(jnp.mean(jnp.linalg.norm(free_form_deform_points(template, lattices[-1], **BOX), axis=-1))))
+        traced.append(len(traces))
+    assert traced[1] == traced[0] <= 1
     free_radius = float(jnp.mean(jnp.linalg.norm(free, axis=-1)))
     assert 0.9 < radii[1] < 0.97 < radii[0] < free_radius
     # At 1e-2 the strain residuals stay large at the optimum, where Gauss-Newton
