@@ -17,7 +17,7 @@ import numpy as np
 from ._surface_clusters import ClusterPatches
 from ._triangulation import row_dot
 
-__all__ = ["ClusterQuadrics"]
+__all__ = ["ClusterQuadrics", "face_plane_terms"]
 
 # A direction counts as constrained when its eigenvalue is at least this fraction of the largest.
 # Placement uses the lower threshold (it reaches for tips and creases), relaxation the higher one
@@ -43,23 +43,10 @@ class ClusterQuadrics(NamedTuple):
     normals: np.ndarray  # (K, 3) sum a n: the cluster's mean normal times its area
 
     @classmethod
-    def of(cls, first_corners: np.ndarray, doubled_normals: np.ndarray, face_area: np.ndarray, patches: ClusterPatches) -> ClusterQuadrics:
-        """From the faces' first corners ``(F, 3)``, ``(b - a) x (c - a)`` and areas ``(F,)``
-        (float64) and the clusters' patches."""
-        normal = doubled_normals / np.where(face_area > 0, 2 * face_area, 1.0)[:, None]
-        # Per face, a third of its area times its plane's six quadric entries and three
-        # right-hand sides; per cluster, the sum over its patch, each face counted once per
-        # corner in the cluster.
-        third = face_area / 3
-        offset = row_dot(normal, first_corners)
-        # Filled column by column (stacking the columns costs several times more).
-        entries = np.empty((face_area.size, _ROWS.size + 6))
-        for column, (i, j) in enumerate(zip(_ROWS, _COLUMNS)):
-            np.multiply(third * normal[:, i], normal[:, j], out=entries[:, column])
-        for k in range(3):
-            np.multiply(third * offset, normal[:, k], out=entries[:, _ROWS.size + k])
-            np.multiply(third, normal[:, k], out=entries[:, _ROWS.size + 3 + k])
-        sums = patches.incidence(face_area.size) @ entries
+    def of(cls, terms: np.ndarray, patches: ClusterPatches) -> ClusterQuadrics:
+        """From the faces' plane terms (:func:`face_plane_terms`) and the clusters' patches."""
+        # Per cluster, the sum over its patch, each face counted once per corner in the cluster.
+        sums = patches.incidence(terms.shape[0]) @ terms
         num = patches.offsets.size - 1
         quadric = np.zeros((num, 3, 3))
         quadric[:, _ROWS, _COLUMNS] = quadric[:, _COLUMNS, _ROWS] = sums[:, : _ROWS.size]
@@ -94,3 +81,21 @@ class ClusterQuadrics(NamedTuple):
     def crease_strength(self) -> np.ndarray:
         """``(K,)`` second eigenvalue over the largest: 0 on a flat cluster, up to 1 at a corner."""
         return self.weights[:, 1] / np.maximum(self.weights[:, 2], np.finfo(np.float64).tiny)
+
+
+def face_plane_terms(first_corners: np.ndarray, doubled_normals: np.ndarray, face_area: np.ndarray) -> np.ndarray:
+    """``(F, 12)`` float64: per face, a third of its area times its plane's six quadric entries
+    (``n n^T``, upper triangle), ``(n . p) n`` and ``n``, from the faces' first corners ``p``,
+    ``(b - a) x (c - a)`` and areas (float64). They do not depend on the clusters: the remesher
+    computes them on its background thread during the Lloyd iterations."""
+    normal = doubled_normals / np.where(face_area > 0, 2 * face_area, 1.0)[:, None]
+    third = face_area / 3
+    offset = row_dot(normal, first_corners)
+    # Filled column by column (stacking the columns costs several times more).
+    terms = np.empty((face_area.size, _ROWS.size + 6))
+    for column, (i, j) in enumerate(zip(_ROWS, _COLUMNS)):
+        np.multiply(third * normal[:, i], normal[:, j], out=terms[:, column])
+    for k in range(3):
+        np.multiply(third * offset, normal[:, k], out=terms[:, _ROWS.size + k])
+        np.multiply(third, normal[:, k], out=terms[:, _ROWS.size + 3 + k])
+    return terms

@@ -24,7 +24,7 @@ from .._validate import check_host_surface, check_host_vertex_field, check_integ
 from ..sample.farthest import farthest_point_sampling
 from ._flips import delaunay_flips, fold_flips
 from ._patch_projection import PatchProjector
-from ._quadrics import ClusterQuadrics
+from ._quadrics import ClusterQuadrics, face_plane_terms
 from ._surface_clusters import ClusterPatches, MeshEdges, SeedForest, cluster_means, connected_clusters, mend_tears
 from ._triangulation import (
     bending_density,
@@ -371,9 +371,11 @@ def remesh_with_sources(
         spread = math.sqrt(float(np.average(generator_density, weights=vertex_area[vertex_area > 0]) / generator_density.min()))
     radius = min(search_radius_scale * spread, max(search_radius_scale, RADIUS_SCALE_CAP)) * spacing
     centroids = x[seeds]
-    # The edge graph of the graph rounds below is built on the background thread while the Lloyd
-    # iterations run (their Warp kernels release the GIL between the host steps).
+    # The edge graph of the graph rounds below and the faces' plane terms of step 4 are computed
+    # on the background thread while the Lloyd iterations run (their Warp kernels release the
+    # GIL between the host steps).
     edge_graph = None if projector is not None else _background().submit(MeshEdges.of, x, faces)
+    plane_terms = None if projector is not None else _background().submit(face_plane_terms, first_corners, doubled_normals, face_area)
     if backend == "warp":
         centroids, labels = _lloyd_warp(x, mass, centroids, max_iterations, radius, resolution, device)
     else:
@@ -394,7 +396,8 @@ def remesh_with_sources(
     # 4. A point per cluster on its patch of the source surface, in the input frame.
     patches = ClusterPatches.of(faces, labels, n_clusters)
     project = PatchProjector(vertices, faces, patches, backend)
-    quadrics = ClusterQuadrics.of(first_corners, doubled_normals, face_area, patches)
+    assert plane_terms is not None  # submitted with the edge graph
+    quadrics = ClusterQuadrics.of(plane_terms.result(), patches)
     positions, source_faces, barycentric = project((quadrics.snap(centroids, spacing) * scale + centre).astype(dtype))
 
     # 5. Topology.

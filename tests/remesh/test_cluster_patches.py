@@ -8,7 +8,7 @@ import pytest
 from benchmarks import _quality as quality
 from geomjax import icosphere
 from geomjax.remesh._patch_projection import PatchProjector
-from geomjax.remesh._quadrics import ClusterQuadrics
+from geomjax.remesh._quadrics import ClusterQuadrics, face_plane_terms
 from geomjax.remesh._surface_clusters import ClusterPatches
 
 pytest.importorskip("warp")
@@ -46,7 +46,7 @@ def test_quadrics_sum_each_cluster_s_corner_planes():
     corners = vertices[faces]
     doubled = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     area = np.linalg.norm(doubled, axis=1) / 2
-    quadrics = ClusterQuadrics.of(corners[:, 0], doubled, area, ClusterPatches.of(faces, labels, NUM_CLUSTERS))
+    quadrics = ClusterQuadrics.of(face_plane_terms(corners[:, 0], doubled, area), ClusterPatches.of(faces, labels, NUM_CLUSTERS))
     # A plain loop: each corner of each face adds a third of the face's area times its plane.
     expected = np.zeros((NUM_CLUSTERS, 3, 3))
     expected_rhs = np.zeros((NUM_CLUSTERS, 3))
