@@ -76,6 +76,11 @@ __all__ = [
 ]  # fmt: skip
 
 
+def _int32_array(values: np.ndarray, device) -> wp.array:
+    """A flat int32 ``wp.array`` copy of integer ``values`` on ``device``."""
+    return wp.array(np.ascontiguousarray(values, np.int32).reshape(-1), dtype=wp.int32, device=device)
+
+
 # ---------------------------------------------------------------------------------------------
 # Mesh preparation.
 
@@ -111,7 +116,7 @@ def closest_tree(vertices, faces_flat, device) -> tuple:
     are built on ``device`` and shared with JAX without a copy.
     """
     vertices = wp.array(np.ascontiguousarray(vertices, np.float32), dtype=wp.vec3, device=device)
-    faces_flat = wp.array(np.ascontiguousarray(faces_flat, np.int32), dtype=wp.int32, device=device)
+    faces_flat = _int32_array(faces_flat, device)
     arrays = build_tree(vertices, faces_flat)
     return tuple(jax.dlpack.from_dlpack(arrays[name]) for name in TREE_ARRAYS)
 
@@ -387,13 +392,8 @@ def eliminate(row_offsets: np.ndarray, columns: np.ndarray, pair_weight: np.ndar
     device = "cpu"
     heap = wp.empty(num, dtype=wp.int32, device=device)
     position = wp.empty(num, dtype=wp.int32, device=device)
-    inputs = [
-        wp.array(row_offsets.astype(np.int32), dtype=wp.int32, device=device),
-        wp.array(columns.astype(np.int32), dtype=wp.int32, device=device),
-        wp.array(pair_weight.astype(np.int32), dtype=wp.int32, device=device),
-        int(target),
-    ]
-    weight_wp: wp.array = wp.array(weight.astype(np.int32), dtype=wp.int32, device=device)
+    inputs = [_int32_array(row_offsets, device), _int32_array(columns, device), _int32_array(pair_weight, device), int(target)]
+    weight_wp = _int32_array(weight, device)
     wp.launch(_eliminate_kernel, dim=1, inputs=inputs, outputs=[weight_wp, heap, position], device=device)
     return position.numpy() >= 0
 
@@ -722,18 +722,14 @@ class PatchSearch:
         scalar = WARP_SCALAR[self.dtype]
         vec = wp.types.vector(3, scalar)
         self.device = device
-
-        def as_int(values: np.ndarray) -> wp.array:
-            return wp.array(np.ascontiguousarray(values, np.int32).reshape(-1), dtype=wp.int32, device=device)
-
         vertices_wp: wp.array = wp.array(vertices, dtype=vec, device=device)
-        faces_wp, candidates_wp = as_int(faces), as_int(candidates)
+        faces_wp, candidates_wp = _int32_array(faces, device), _int32_array(candidates, device)
         # Spheres per candidate (a face once per patch it is in): the search reads them in order.
         centres = wp.empty(candidates.size, dtype=vec, device=device)
         radii = wp.empty(candidates.size, dtype=scalar, device=device)
         wp.launch(_face_sphere(self.dtype), dim=candidates.size, inputs=[vertices_wp, faces_wp, candidates_wp], outputs=[centres, radii], device=device)
         tolerances = np.array([PATCH_BOUND_SLACK * np.finfo(self.dtype).eps, *tie], self.dtype)
-        self.arrays = [vertices_wp, faces_wp, as_int(offsets), candidates_wp, centres, radii, wp.array(tolerances, dtype=scalar, device=device)]
+        self.arrays = [vertices_wp, faces_wp, _int32_array(offsets, device), candidates_wp, centres, radii, wp.array(tolerances, dtype=scalar, device=device)]
         self.min_chunk = max(PATCH_MIN_CHUNK, round(PATCH_CHUNK_FACES * (offsets.size - 1) / max(candidates.size, 1)))
 
 
@@ -903,8 +899,8 @@ class EdgeGraph:
     def __init__(self, row_offsets: np.ndarray, columns: np.ndarray, lengths: np.ndarray):
         device = "cpu"
         self.arrays: list[wp.array] = [
-            wp.array(np.ascontiguousarray(row_offsets, np.int32), dtype=wp.int32, device=device),
-            wp.array(np.ascontiguousarray(columns, np.int32), dtype=wp.int32, device=device),
+            _int32_array(row_offsets, device),
+            _int32_array(columns, device),
             wp.array(np.ascontiguousarray(lengths, np.float64), dtype=wp.float64, device=device),
         ]
         # A push improves a vertex or moves it with its parent: about once per cleared vertex,
@@ -934,12 +930,8 @@ def grow_forest(
     were not a forest of the previous seeds); start over from nothing.
     """
     device = "cpu"
-
-    def as_int(values: np.ndarray) -> wp.array:
-        return wp.array(np.ascontiguousarray(values, np.int32), dtype=wp.int32, device=device)
-
     graph.overflow.zero_()
-    inputs = [*graph.arrays, as_int(cleared), as_int(seeds), as_int(seed_labels)]
+    inputs = [*graph.arrays, *(_int32_array(a, device) for a in (cleared, seeds, seed_labels))]
     # Wrapped, not copied: the kernel writes the caller's arrays.
     state: list[wp.array] = [
         wp.array(a, dtype=kind, device=device, copy=False) for a, kind in ((distance, wp.float64), (labels, wp.int32), (parents, wp.int32))
