@@ -131,8 +131,9 @@ def remeshing(
        lowest centroid index), then each centroid moves to the mass-weighted mean of its
        vertices (an empty cluster keeps its position). Then (not in the reference) the
        clusters become regions of the surface: 2 more Lloyd rounds in which each vertex joins
-       the cluster whose seed (the member closest to its centroid) is nearest along the mesh's
-       edges (Dijkstra), so no cluster reaches across a thin part or a narrow gap; and up to 12
+       the cluster whose seed (the member closest to its centroid; at first, the member of the
+       last assignment closest to the final centroid) is nearest along the mesh's edges
+       (Dijkstra), so no cluster reaches across a thin part or a narrow gap; and up to 12
        rounds that mend the layouts whose relabelled triangles would not be a surface (a
        cluster squeezed between two others gives up its seed; two clusters meeting along two
        arcs get one of them split, the smallest other cluster giving up its seed).
@@ -376,10 +377,14 @@ def remesh_with_sources(
     # GIL between the host steps).
     edge_graph = None if projector is not None else _background().submit(MeshEdges.of, x, faces)
     plane_terms = None if projector is not None else _background().submit(face_plane_terms, first_corners, doubled_normals, face_area)
+    # The reference's labels are those of a last assignment to the final centroids; the graph
+    # rounds below replace them, and take their seeds from the assignment that gave the final
+    # centroids (a search less).
+    final = projector is not None
     if backend == "warp":
-        centroids, labels = _lloyd_warp(x, mass, centroids, max_iterations, radius, resolution, device)
+        centroids, labels = _lloyd_warp(x, mass, centroids, max_iterations, radius, resolution, device, final)
     else:
-        centroids, labels = _lloyd_jax(x, mass, centroids, max_iterations, device)
+        centroids, labels = _lloyd_jax(x, mass, centroids, max_iterations, device, final)
     index_dtype = jnp.int64 if np.dtype(mesh_indices.dtype) == np.int64 else jnp.int32
     if projector is not None:
         # 4. and 5. as the reference: projected centroids and their relabelled triangles.
@@ -543,7 +548,9 @@ def _stratified_seeds(x: np.ndarray, mass: np.ndarray, count: int, width: float,
 # Lloyd iterations.
 
 
-def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device):
+def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device, final):
+    """Lloyd's iterations on the Warp hash grid: the final centroids and the labels of the last
+    assignment (to the final centroids if ``final``, else to those before the last means)."""
     import warp
 
     from warp_ffi.remesh import nearest_centroids
@@ -562,18 +569,22 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device):
     for _ in range(iterations):
         labels = nearest(centroids=centroids, previous=labels)
         centroids = cluster_means(x, mass, labels, centroids)
-    return centroids, nearest(centroids=centroids, previous=labels)
+    if final or labels is None:
+        labels = nearest(centroids=centroids, previous=labels)
+    return centroids, labels
 
 
-def _lloyd_jax(x, mass, centroids, iterations, device):
-    """Lloyd's iterations: the nearest centroids from JAX on ``device``, the means from
-    :func:`cluster_means` on the host with the host ``x`` and ``mass``, as on the Warp path (the
-    same centroids to the bit, so that the assignments agree on both backends, ties included)."""
+def _lloyd_jax(x, mass, centroids, iterations, device, final):
+    """Lloyd's iterations as :func:`_lloyd_warp`: the nearest centroids from JAX on ``device``, the
+    means from :func:`cluster_means` on the host with the host ``x`` and ``mass``, as on the Warp
+    path (the same centroids to the bit, so that the assignments agree on both backends, ties
+    included)."""
     points = jax.device_put(x, device)
     labels = np.asarray(_nearest_jax(points, jax.device_put(centroids, device)))
-    for _ in range(iterations):
+    for iteration in range(iterations):
         centroids = cluster_means(x, mass, labels, centroids)
-        labels = np.asarray(_nearest_jax(points, jax.device_put(centroids, device)))
+        if final or iteration < iterations - 1:
+            labels = np.asarray(_nearest_jax(points, jax.device_put(centroids, device)))
     return centroids, labels
 
 
