@@ -80,28 +80,18 @@ class ClusterPatches(NamedTuple):
 
     @classmethod
     def of(cls, faces: np.ndarray, labels: np.ndarray, num: int) -> ClusterPatches:
-        label = labels[faces]
-        # Each face once per distinct cluster among its corners, with that cluster's number of
-        # corners, in face order (row-major): the stable sort by cluster below keeps the faces
-        # of a patch ascending.
-        same01, same02, same12 = label[:, 1] == label[:, 0], label[:, 2] == label[:, 0], label[:, 2] == label[:, 1]
-        distinct = np.ones(label.shape, bool)
-        distinct[:, 1] = ~same01
-        distinct[:, 2] = ~same02 & ~same12
-        count = np.ones(label.shape, np.int32)
-        count[:, 0] += same01.astype(np.int32) + same02
-        count[:, 1] += same12
-        cluster, face, corners = label[distinct], np.nonzero(distinct)[0], count[distinct]
-        empty = np.flatnonzero(np.bincount(cluster, minlength=num) == 0)
+        # One entry per face corner at (its cluster, the face): SciPy's conversion to CSR is a
+        # counting sort that sums the entries of a face with several corners in one cluster and
+        # leaves each row's faces ascending (three times faster than masks and an argsort).
+        num_faces = faces.shape[0]
+        corner_faces = np.repeat(np.arange(num_faces, dtype=np.int32), 3)
+        counts = sparse.csr_matrix((np.ones(3 * num_faces, np.int32), (np.take(labels, faces).reshape(-1), corner_faces)), shape=(num, num_faces))
+        offsets, face, corners = (a.astype(np.int32, copy=False) for a in (counts.indptr, counts.indices, counts.data))
+        empty = np.flatnonzero(offsets[1:] == offsets[:-1])
         if empty.size:
-            cluster = np.concatenate([cluster, empty])
-            face = np.concatenate([face, np.zeros(empty.size, face.dtype)])
-            corners = np.concatenate([corners, np.zeros(empty.size, corners.dtype)])
-        # A stable sort of 16-bit keys is a radix sort: five times faster here than of wider ones.
-        order = np.argsort(cluster.astype(np.uint16) if num <= 1 << 16 else cluster, kind="stable")
-        offsets = np.zeros(num + 1, np.int32)
-        np.cumsum(np.bincount(cluster, minlength=num), out=offsets[1:])
-        return cls(offsets, face[order].astype(np.int32), corners[order])
+            face, corners = np.insert(face, offsets[empty], 0), np.insert(corners, offsets[empty], 0)
+            offsets[1:] += np.cumsum(offsets[1:] == offsets[:-1], dtype=np.int32)
+        return cls(offsets, face, corners)
 
     def incidence(self, num_faces: int) -> sparse.csr_matrix:
         """``(K, F)`` sparse matrix of corner counts: ``incidence @ per_face`` sums a per-face
