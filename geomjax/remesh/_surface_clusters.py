@@ -18,7 +18,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from .._dispatch import warp_available
-from ._triangulation import distinct_triangles, half_edges, row_dot
+from ._triangulation import half_edges, relabelled_triangles, row_dot
 
 __all__ = ["ClusterPatches", "MeshEdges", "SeedForest", "cluster_means", "connected_clusters", "mend_tears"]
 
@@ -168,7 +168,7 @@ def connected_clusters(forest: SeedForest, x, mass, centroids, rounds: int):
     return centroids
 
 
-def mend_tears(edges: MeshEdges, forest: SeedForest, x, faces, mass, centroids, max_rounds: int):
+def mend_tears(edges: MeshEdges, forest: SeedForest, x, corners, mass, centroids, max_rounds: int):
     """Reassign clusters until their relabelled triangles have no fin and no pinch.
 
     * A *fin*: a cluster C squeezed between two others A and B (a thin strip across their
@@ -182,15 +182,17 @@ def mend_tears(edges: MeshEdges, forest: SeedForest, x, faces, mass, centroids, 
       keep the number of clusters, the smallest clusters not involved give up their seeds and
       labels.
 
-    At most ``max_rounds`` rounds; fins go first (a fin also crowds an edge). Updates
-    ``forest`` and returns the centroids; what is left shows in the remesh's topology check.
+    At most ``max_rounds`` rounds; fins go first (a fin also crowds an edge). ``corners``:
+    the input triangles as :func:`relabelled_triangles` takes them. Updates ``forest`` and
+    returns the centroids and the relabelled triangles of its final labels; what is left shows
+    in the remesh's topology check.
     """
     num = centroids.shape[0]
     for _ in range(max_rounds):
         labels = forest.labels
-        triangles = distinct_triangles(labels[faces])
+        triangles = relabelled_triangles(labels, corners)
         if triangles.shape[0] == 0:
-            break
+            return centroids, triangles
         tail, head, key = half_edges(triangles, num)
         _, first, counts = np.unique(key, return_index=True, return_counts=True)
         on_boundary = np.zeros(num, bool)
@@ -200,7 +202,7 @@ def mend_tears(edges: MeshEdges, forest: SeedForest, x, faces, mass, centroids, 
         fins = np.flatnonzero(np.bincount(np.concatenate([tail[torn], head[torn]]), minlength=num) >= 2)
         crowded = first[counts > 2]
         if fins.size == 0 and crowded.size == 0:
-            break
+            return centroids, triangles
         seeds = _cluster_seeds(x, centroids, labels)
         seed_of = np.full(num, -1, np.int64)
         seed_of[labels[seeds]] = seeds
@@ -220,7 +222,7 @@ def mend_tears(edges: MeshEdges, forest: SeedForest, x, faces, mass, centroids, 
         live = np.flatnonzero(seed_of >= 0)
         forest.assign(seed_of[live], live)
         centroids = cluster_means(x, mass, forest.labels, centroids)
-    return centroids
+    return centroids, relabelled_triangles(forest.labels, corners)
 
 
 def _cluster_seeds(x, centroids, labels) -> np.ndarray:

@@ -19,6 +19,7 @@ __all__ = [
     "column_min",
     "degenerate_vertices",
     "distinct_triangles",
+    "relabelled_triangles",
     "drop_crowded_edges",
     "half_edges",
     "min_angles",
@@ -93,6 +94,15 @@ def half_edges(triangles: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarr
     tail = triangles.reshape(-1).astype(np.int64)
     head = np.roll(triangles, -1, axis=1).reshape(-1).astype(np.int64)
     return tail, head, np.minimum(tail, head) * stride + np.maximum(tail, head)
+
+
+def relabelled_triangles(labels: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """The triangles ``corners`` (``(3, F)``: each face's first, second and third corner, e.g.
+    ``faces.T`` made contiguous, so that each corner's labels are read and compared in
+    sequence) relabelled by ``labels``, as :func:`distinct_triangles` keeps them."""
+    a, b, c = np.take(labels, corners)
+    keep = np.flatnonzero((a != b) & (b != c) & (a != c))
+    return distinct_triangles(np.stack([a[keep], b[keep], c[keep]], axis=1))
 
 
 def distinct_triangles(labelled: np.ndarray) -> np.ndarray:

@@ -33,10 +33,10 @@ from ._triangulation import (
     column_max,
     column_min,
     degenerate_vertices,
-    distinct_triangles,
     drop_crowded_edges,
     nondegenerate,
     overturned_vertices,
+    relabelled_triangles,
     relaxation_targets,
     relocate_poor_corners,
     remove_degree_three,
@@ -389,13 +389,13 @@ def remesh_with_sources(
     if projector is not None:
         # 4. and 5. as the reference: projected centroids and their relabelled triangles.
         positions, source_faces, barycentric = projector.result()((centroids * scale + centre).astype(dtype))
-        triangles = _surviving(distinct_triangles(labels[faces]), positions, "topology reconstruction")
+        triangles = _surviving(relabelled_triangles(labels, np.ascontiguousarray(faces.T)), positions, "topology reconstruction")
         return _result(positions, triangles, source_faces, barycentric, index_dtype, device)
     assert edge_graph is not None  # submitted unless the reference returned above
     edges = edge_graph.result()
     forest = SeedForest(edges, labels, n_clusters)
     centroids = connected_clusters(forest, x, mass, centroids, GRAPH_LLOYD_ROUNDS)
-    centroids = mend_tears(edges, forest, x, faces, mass, centroids, TEAR_REPAIR_ROUNDS)
+    centroids, triangles = mend_tears(edges, forest, x, np.ascontiguousarray(faces.T), mass, centroids, TEAR_REPAIR_ROUNDS)
     labels = forest.labels
 
     # 4. A point per cluster on its patch of the source surface, in the input frame.
@@ -405,8 +405,7 @@ def remesh_with_sources(
     quadrics = ClusterQuadrics.of(plane_terms.result(), patches)
     positions, source_faces, barycentric = project((quadrics.snap(centroids, spacing) * scale + centre).astype(dtype))
 
-    # 5. Topology.
-    triangles = distinct_triangles(labels[faces])
+    # 5. Topology (the relabelled triangles came with the last check of the mending).
     flat = degenerate_vertices(triangles, positions, n_clusters)
     if np.any(flat):  # quadric points that make a triangle flat fall back to the centroids
         positions, source_faces, barycentric = (np.array(a) for a in (positions, source_faces, barycentric))
