@@ -689,9 +689,11 @@ _patch_closest = Overloads(
 @wp.kernel
 @no_type_check
 def _face_sphere_kernel(
-    vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.int32), candidates: wp.array(dtype=wp.int32), centres: wp.array(dtype=Any), radii: wp.array(dtype=Any)
+    vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.int32), candidates: wp.array(dtype=wp.int32), offset: wp.int32,
+    centres: wp.array(dtype=Any), radii: wp.array(dtype=Any),
 ):  # fmt: skip
-    j = wp.tid()
+    _, j = wp.tid()
+    j = j + offset
     face = candidates[j]
     a = vertices[faces[3 * face]]
     b = vertices[faces[3 * face + 1]]
@@ -727,7 +729,7 @@ class PatchSearch:
         # Spheres per candidate (a face once per patch it is in): the search reads them in order.
         centres = wp.empty(candidates.size, dtype=vec, device=device)
         radii = wp.empty(candidates.size, dtype=scalar, device=device)
-        wp.launch(_face_sphere(self.dtype), dim=candidates.size, inputs=[vertices_wp, faces_wp, candidates_wp], outputs=[centres, radii], device=device)
+        launch_in_chunks(_face_sphere(self.dtype), 1, candidates.size, [vertices_wp, faces_wp, candidates_wp], [centres, radii])
         tolerances = np.array([PATCH_BOUND_SLACK * np.finfo(self.dtype).eps, *tie], self.dtype)
         self.arrays = [vertices_wp, faces_wp, _int32_array(offsets, device), candidates_wp, centres, radii, wp.array(tolerances, dtype=scalar, device=device)]
         self.min_chunk = max(PATCH_MIN_CHUNK, round(PATCH_CHUNK_FACES * (offsets.size - 1) / max(candidates.size, 1)))
