@@ -627,7 +627,7 @@ PATCH_BOUND_SLACK = 64
 def _patch_closest_kernel(
     points: wp.array(dtype=Any), patches: wp.array(dtype=wp.int32), vertices: wp.array(dtype=Any), faces: wp.array(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int32), candidates: wp.array(dtype=wp.int32), centres: wp.array(dtype=Any), radii: wp.array(dtype=Any),
-    tolerances: wp.array(dtype=Any), offset: wp.int32, found: wp.array(dtype=wp.int32),
+    tolerances: wp.array(dtype=Any), hints: wp.array(dtype=wp.int32), offset: wp.int32, found: wp.array(dtype=wp.int32),
 ):  # fmt: skip
     _, t = wp.tid()
     i = t + offset
@@ -642,14 +642,19 @@ def _patch_closest_kernel(
     # U bounds the patch's. Each face lies in its bounding sphere, so a face at |p - centre| - radius
     # > U cannot be closer: the test |p - centre| <= (U + radius)(1 + s) / (1 - s) (s: the slack
     # for rounding) needs no square root per face.
-    # (centres and radii are stored per candidate, in patch order: read in sequence.)
-    nearest = candidates[start]
-    nearest_d2 = wp.length_sq(p - centres[start])
-    for j in range(start + 1, stop):
-        d2 = wp.length_sq(p - centres[j])
-        if d2 < nearest_d2:
-            nearest = candidates[j]
-            nearest_d2 = d2
+    # (centres and radii are stored per candidate, in patch order: read in sequence.) A hint (a
+    # face of the patch near the point, e.g. its face before it moved a little) serves as well.
+    nearest = int(0)
+    if hints.shape[0] > 0:
+        nearest = hints[i]
+    else:
+        nearest = candidates[start]
+        nearest_d2 = wp.length_sq(p - centres[start])
+        for j in range(start + 1, stop):
+            d2 = wp.length_sq(p - centres[j])
+            if d2 < nearest_d2:
+                nearest = candidates[j]
+                nearest_d2 = d2
     # (U + tie: the tied faces must pass too.)
     upper = wp.sqrt(triangle_distance_sq(p, vertices[faces[3 * nearest]], vertices[faces[3 * nearest + 1]], vertices[faces[3 * nearest + 2]])) + tie
     one = type(upper)(1.0)
@@ -735,10 +740,11 @@ class PatchSearch:
         self.min_chunk = max(PATCH_MIN_CHUNK, round(PATCH_CHUNK_FACES * (offsets.size - 1) / max(candidates.size, 1)))
 
 
-def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.ndarray) -> np.ndarray:
+def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.ndarray, hints: np.ndarray | None = None) -> np.ndarray:
     """``(Q,)`` int32: the nearest face of each point ``(Q, 3)`` (the working dtype) among the
     faces of its patch ``patches`` ``(Q,)``; distances exact in the working dtype, ties (within
-    the search's tie tolerance) to the lowest face index."""
+    the search's tie tolerance) to the lowest face index. ``hints`` ``(Q,)``: optionally a face
+    of each point's patch near it (its distance bounds the search; the result is the same)."""
     vec = wp.types.vector(3, WARP_SCALAR[search.dtype])
     found = wp.empty(points.shape[0], dtype=wp.int32, device=search.device)
     vertices, faces, offsets, candidates, centres, radii, tolerances = search.arrays
@@ -752,6 +758,7 @@ def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.nda
         centres,
         radii,
         tolerances,
+        _int32_array(np.zeros(0, np.int32) if hints is None else hints, search.device),
     ]
     launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=search.min_chunk)
     return found.numpy()

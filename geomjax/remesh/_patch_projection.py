@@ -68,14 +68,16 @@ class PatchProjector:
             device = str(warp.device_from_jax(self.device))
             self.search = PatchSearch(self.host_vertices, self.host_faces, self.offsets, self.candidates, device, self.tie)
 
-    def __call__(self, targets: np.ndarray, clusters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def __call__(self, targets: np.ndarray, clusters: np.ndarray | None = None, hints: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``hints`` ``(Q,)``: optionally a face of each target's patch near it (the source face
+        of a point that moved a little); the Warp search starts from it, the result is the same."""
         targets = np.ascontiguousarray(targets, self.host_vertices.dtype)
         count = targets.shape[0]
         clusters = np.arange(count, dtype=np.int32) if clusters is None else np.asarray(clusters, np.int32)
         if self.search is not None:
             from warp_ffi.remesh import patch_closest_faces
 
-            faces = patch_closest_faces(self.search, targets, clusters)
+            faces = patch_closest_faces(self.search, targets, clusters, hints)
         else:
             faces = self._closest_faces_jax(targets, clusters)
         size = _bucket(count, MIN_POINTS)

@@ -424,7 +424,7 @@ def remesh_with_sources(
             vertex_rho *= np.einsum("vk,vk->v", barycentric, rho[faces[source_faces]])
         targets = relaxation_targets(positions, triangles, vertex_rho, fixed)
         targets = _within_reach(anchors, positions + quadrics.free_moves(targets - positions), RELAXATION_REACH * spacing * scale)
-        moved = project(targets.astype(dtype))
+        moved = project(targets.astype(dtype), hints=source_faces)
         # A step that would overturn a triangle is undone for that triangle's vertices.
         undo = overturned_vertices(positions, moved[0], triangles)
         positions = np.where(undo[:, None], positions, moved[0])

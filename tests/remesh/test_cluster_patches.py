@@ -91,6 +91,32 @@ def test_projection_is_the_nearest_point_of_the_patch(backend, dtype):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_a_hint_does_not_change_the_nearest_face(backend):
+    # The search may start from any face of the patch (the remesher passes a vertex's face before
+    # it moved): the worst hint (the patch's face farthest from the target) and a random one give
+    # the faces found without a hint, which test_projection_is_the_nearest_point_of_the_patch
+    # checks against an independent computation.
+    vertices, faces, labels = _sphere_with_clusters()
+    rng = np.random.default_rng(1)
+    targets = rng.normal(size=(40, 3)) * rng.uniform(0.2, 1.5, (40, 1))
+    clusters = rng.integers(0, NUM_CLUSTERS, 40)
+    patches = ClusterPatches.of(faces, labels, NUM_CLUSTERS)
+    offsets, candidates, _ = patches
+    project = PatchProjector(jnp.asarray(vertices), faces, patches, backend)
+    farthest, random = [], []
+    for target, k in zip(targets, clusters, strict=True):
+        patch = candidates[offsets[k] : offsets[k + 1]]
+        farthest.append(patch[np.argmax(np.linalg.norm(vertices[faces[patch]].mean(axis=1) - target, axis=1))])
+        random.append(rng.choice(patch))
+    expected = project(targets, clusters)
+    for hints in (np.array(farthest), np.array(random)):
+        found = project(targets, clusters, hints=hints)
+        np.testing.assert_array_equal(found[1], expected[1])
+        np.testing.assert_array_equal(found[0], expected[0])
+    assert not np.array_equal(np.array(farthest), expected[1])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_ties_go_to_the_lowest_face(backend):
     # A point straight out from a vertex: every face of the patch around that vertex has the
     # vertex as its closest point, at the same distance.
@@ -101,6 +127,8 @@ def test_ties_go_to_the_lowest_face(backend):
     positions, found, _ = project(vertices[vertex][None] * 1.2, np.array([k]))
     around = np.flatnonzero(np.any(faces == vertex, axis=1))
     assert found[0] == around.min()
+    # Starting from the highest of the tied faces changes nothing.
+    assert project(vertices[vertex][None] * 1.2, np.array([k]), hints=around[-1:])[1][0] == around.min()
     np.testing.assert_allclose(positions[0], vertices[vertex], atol=1e-15)
 
 
