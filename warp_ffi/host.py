@@ -10,7 +10,7 @@ JAX calls then reuse:
   ``mesh_words``), :func:`refit_mesh`; ``warp_ffi._grid.build_mesh`` builds the ``wp.Mesh``.
 * Poisson-disk sampling (``warp_ffi.poisson`` re-exports these): :func:`reject_near_accepted`,
   :func:`resolve_conflicts`, :func:`neighbour_lists` and :func:`eliminate`.
-* The clustering remesher's :func:`nearest_centroids`, :class:`PatchSearch` with
+* The clustering remesher's :func:`nearest_centroids` and :class:`CentroidSearch`, :class:`PatchSearch` with
   :func:`patch_closest_faces`, and :class:`EdgeGraph` with :func:`grow_forest` (its clusters as
   a shortest-path forest of the edge graph, updated where the seeds changed), re-exported by
   ``warp_ffi.remesh``.
@@ -72,7 +72,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "PatchSearch", "patch_closest_faces", "EdgeGraph", "grow_forest",
+    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -409,6 +409,8 @@ NEIGHBOUR_LIST_MIN_POINTS = 10
 # Absolute widening of a point's reach around its previous centroid, in dtype epsilons of the
 # largest coordinates of the two: covers the rounding of the distances near coinciding points.
 NEIGHBOUR_SLACK_EPSILONS = 16.0
+# Centroids per chunk of the neighbour-list launches (a few dozen hash-grid neighbours each).
+LIST_MIN_CHUNK = 128
 _ACCEPT_MARGIN = wp.constant(ACCEPT_MARGIN)
 
 
@@ -451,12 +453,13 @@ def _centroid_gap_kernel(grid: wp.uint64, centroids: wp.array(dtype=Any), params
 @no_type_check
 def _centroid_neighbours_kernel(
     grid: wp.uint64, centroids: wp.array(dtype=Any), params: wp.array(dtype=Any), offsets: wp.array(dtype=wp.int32),
-    counts: wp.array(dtype=wp.int32), neighbours: wp.array(dtype=wp.int32), distances: wp.array(dtype=Any),
+    offset: wp.int32, counts: wp.array(dtype=wp.int32), neighbours: wp.array(dtype=wp.int32), distances: wp.array(dtype=Any),
 ):  # fmt: skip
     # Each centroid's other centroids within the outer radius: counted, and given offsets (the
     # counts' running sums), also listed from offsets[k] by distance (ties: the lower index;
     # sorted by insertion, a few dozen each).
-    k = wp.tid()
+    _, k = wp.tid()
+    k = k + offset
     c = centroids[k]
     r = params[2]
     listing = offsets.shape[0] > 0
@@ -564,48 +567,79 @@ def nearest_centroids(
 ) -> np.ndarray:
     """``(N,)`` int32: index of the nearest centroid of each point (ties: lowest index).
 
-    ``points`` and ``centroids`` share one float dtype (float32 or float64); centroids are
-    bucketed in cells of ``cell_width`` (``radius`` suits: the first search then visits at most
-    two cells per axis). ``previous``: the points' labels before the centroids moved (``(N,)``
-    integers in ``[0, K)``), which settles most points with one distance (with at least
-    ``NEIGHBOUR_LIST_MIN_POINTS`` points per centroid, a few: those of the centroids next to the
-    previous one); the result is the same without. ``spare_threads``: as for ``launch_in_chunks``.
+    One search of a :class:`CentroidSearch` (see there for the arguments).
     """
-    dtype = np.dtype(points.dtype)
-    scalar = WARP_SCALAR[dtype]
-    vec = wp.vec3d if scalar == wp.float64 else wp.vec3f  # the types wp.HashGrid accepts
-    points_wp: wp.array = wp.array(points, dtype=vec, device=device)
-    centroids_wp: wp.array = wp.array(centroids, dtype=vec, device=device)
-    inner = radius * INNER_RADIUS_FRACTION
-    slack = NEIGHBOUR_SLACK_EPSILONS * np.finfo(dtype).eps
-    params: wp.array = wp.array(np.array([inner, inner * ACCEPT_MARGIN, radius, radius * ACCEPT_MARGIN, slack], dtype), dtype=scalar, device=device)
-    labels = wp.empty(points.shape[0], dtype=wp.int32, device=device)
-    previous_wp: wp.array = wp.array(np.zeros(0, np.int32) if previous is None else previous.astype(np.int32), dtype=wp.int32, device=device)
-    num = centroids.shape[0]
-    with_lists = previous is not None and points.shape[0] >= NEIGHBOUR_LIST_MIN_POINTS * num
-    # Unused inputs are empty arrays (the kernels read their sizes).
-    gaps = wp.zeros(num if previous is not None and not with_lists else 0, dtype=scalar, device=device)
-    with GRID_LOCK:
-        grid = hash_grid(centroids_wp, cell_width, dims)
-        if with_lists:
-            counts = wp.empty(num, dtype=wp.int32, device=device)
-            unlisted = [wp.empty(0, dtype=wp.int32, device=device), wp.empty(0, dtype=scalar, device=device)]
-            launch_lists = functools.partial(wp.launch, _centroid_neighbours(dtype), dim=num, device=device)
-            # Count (no offsets: nothing listed), then list from the counts' running sums.
-            launch_lists(inputs=[grid.id, centroids_wp, params, unlisted[0]], outputs=[counts, *unlisted])
-            offsets = np.zeros(num + 1, np.int32)
-            np.cumsum(counts.numpy(), out=offsets[1:])
-            offsets_wp: wp.array = wp.array(offsets, dtype=wp.int32, device=device)
-            neighbours = wp.empty(int(offsets[-1]), dtype=wp.int32, device=device)
-            distances = wp.empty(int(offsets[-1]), dtype=scalar, device=device)
-            launch_lists(inputs=[grid.id, centroids_wp, params, offsets_wp], outputs=[counts, neighbours, distances])
+    return CentroidSearch(points, radius, cell_width, dims, device)(centroids, previous, spare_threads)
+
+
+class CentroidSearch:
+    """Points on ``device`` for repeated nearest-centroid searches (Lloyd's iterations).
+
+    ``points`` ``(N, 3)`` and the centroids of each call share one float dtype (float32 or
+    float64); centroids are bucketed in cells of ``cell_width`` over a table of ``dims``
+    (``radius`` suits: the first search then visits at most two cells per axis).
+    """
+
+    def __init__(self, points: np.ndarray, radius: float, cell_width: float, dims: tuple[int, int, int], device: str):
+        self.dtype = np.dtype(points.dtype)
+        scalar = WARP_SCALAR[self.dtype]
+        self.vec = wp.vec3d if scalar == wp.float64 else wp.vec3f  # the types wp.HashGrid accepts
+        self.device, self.cell_width, self.dims = device, cell_width, dims
+        self.points: wp.array = wp.array(points, dtype=self.vec, device=device)
+        inner = radius * INNER_RADIUS_FRACTION
+        slack = NEIGHBOUR_SLACK_EPSILONS * np.finfo(self.dtype).eps
+        params = np.array([inner, inner * ACCEPT_MARGIN, radius, radius * ACCEPT_MARGIN, slack], self.dtype)
+        self.params: wp.array = wp.array(params, dtype=scalar, device=device)
+        # The last call's labels, as returned and on the device: passed back as ``previous``,
+        # they need no copy.
+        self._last: tuple[np.ndarray, wp.array] | None = None
+
+    def __call__(self, centroids: np.ndarray, previous: np.ndarray | None = None, spare_threads: int = 0) -> np.ndarray:
+        """``(N,)`` int32: the nearest of ``centroids`` ``(K, 3)`` to each point (ties: lowest index).
+
+        ``previous``: the points' labels before the centroids moved (``(N,)`` integers in
+        ``[0, K)``), which settles most points with one distance (with at least
+        ``NEIGHBOUR_LIST_MIN_POINTS`` points per centroid, a few: those of the centroids next to
+        the previous one); the result is the same without. ``spare_threads``: as for
+        ``launch_in_chunks``.
+        """
+        device, scalar = self.device, WARP_SCALAR[self.dtype]
+        num_points = self.points.shape[0]
+        centroids_wp: wp.array = wp.array(centroids, dtype=self.vec, device=device)
+        labels = wp.empty(num_points, dtype=wp.int32, device=device)
+        if previous is None:
+            previous_wp = wp.empty(0, dtype=wp.int32, device=device)
+        elif self._last is not None and previous is self._last[0]:
+            previous_wp = self._last[1]
         else:
-            offsets_wp, neighbours, distances = (wp.empty(0, dtype=kind, device=device) for kind in (wp.int32, wp.int32, scalar))
-            if gaps.shape[0]:
-                wp.launch(_centroid_gap(dtype), dim=num, inputs=[grid.id, centroids_wp, params], outputs=[gaps], device=device)
-        inputs = [grid.id, points_wp, centroids_wp, params, previous_wp, gaps, offsets_wp, neighbours, distances]
-        launch_in_chunks(_nearest_centroid(dtype), 1, points.shape[0], inputs, [labels], spare_threads=spare_threads)
-    return labels.numpy()
+            previous_wp = _int32_array(previous, device)
+        num = centroids.shape[0]
+        with_lists = previous is not None and num_points >= NEIGHBOUR_LIST_MIN_POINTS * num
+        # Unused inputs are empty arrays (the kernels read their sizes).
+        gaps = wp.zeros(num if previous is not None and not with_lists else 0, dtype=scalar, device=device)
+        with GRID_LOCK:
+            grid = hash_grid(centroids_wp, self.cell_width, self.dims)
+            if with_lists:
+                counts = wp.empty(num, dtype=wp.int32, device=device)
+                unlisted = [wp.empty(0, dtype=wp.int32, device=device), wp.empty(0, dtype=scalar, device=device)]
+                lists = functools.partial(launch_in_chunks, _centroid_neighbours(self.dtype), 1, num, min_chunk=LIST_MIN_CHUNK, spare_threads=spare_threads)
+                # Count (no offsets: nothing listed), then list from the counts' running sums.
+                lists([grid.id, centroids_wp, self.params, unlisted[0]], [counts, *unlisted])
+                offsets = np.zeros(num + 1, np.int32)
+                np.cumsum(counts.numpy(), out=offsets[1:])
+                offsets_wp = _int32_array(offsets, device)
+                neighbours = wp.empty(int(offsets[-1]), dtype=wp.int32, device=device)
+                distances = wp.empty(int(offsets[-1]), dtype=scalar, device=device)
+                lists([grid.id, centroids_wp, self.params, offsets_wp], [counts, neighbours, distances])
+            else:
+                offsets_wp, neighbours, distances = (wp.empty(0, dtype=kind, device=device) for kind in (wp.int32, wp.int32, scalar))
+                if gaps.shape[0]:
+                    wp.launch(_centroid_gap(self.dtype), dim=num, inputs=[grid.id, centroids_wp, self.params], outputs=[gaps], device=device)
+            inputs = [grid.id, self.points, centroids_wp, self.params, previous_wp, gaps, offsets_wp, neighbours, distances]
+            launch_in_chunks(_nearest_centroid(self.dtype), 1, num_points, inputs, [labels], spare_threads=spare_threads)
+        result = labels.numpy()
+        self._last = (result, labels)
+        return result
 
 
 # ---------------------------------------------------------------------------------------------

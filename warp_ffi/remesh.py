@@ -5,6 +5,7 @@ Host-side NumPy functions; they live in :mod:`warp_ffi.host` with the other host
 points and are re-exported here under the names geomjax imports.
 """
 
+from .host import CentroidSearch as CentroidSearch
 from .host import EdgeGraph as EdgeGraph
 from .host import PatchSearch as PatchSearch
 from .host import grow_forest as grow_forest

@@ -552,7 +552,7 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device, fina
     assignment (to the final centroids if ``final``, else to those before the last means)."""
     import warp
 
-    from warp_ffi.remesh import nearest_centroids
+    from warp_ffi.remesh import CentroidSearch
 
     warp_device = str(warp.device_from_jax(device))
     # Cells four times the first search radius (radius / 2): that search visits 1 to 8 cells.
@@ -561,15 +561,16 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device, fina
     cell = 2 * radius
     low, high = column_min(x) - radius, column_max(x) + radius
     dims = table_dims(low, high, cell, (resolution,) * 3)
+    search = CentroidSearch(x, radius, cell, dims, warp_device)
     # One core is left to the edge graph (or the reference's search tree), built meanwhile on the
     # background thread.
-    nearest = functools.partial(nearest_centroids, x, radius=radius, cell_width=cell, dims=dims, device=warp_device, spare_threads=1)
+    nearest = functools.partial(search, spare_threads=1)
     labels = None
     for _ in range(iterations):
-        labels = nearest(centroids=centroids, previous=labels)
+        labels = nearest(centroids, labels)
         centroids = cluster_means(x, mass, labels, centroids)
     if final or labels is None:
-        labels = nearest(centroids=centroids, previous=labels)
+        labels = nearest(centroids, labels)
     return centroids, labels
 
 

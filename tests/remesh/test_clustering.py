@@ -408,8 +408,9 @@ def test_nearest_centroids_with_previous_labels_are_exact(dtype, num_centroids):
     # closer to their old cluster's moved centroid than that centroid is to any other (600
     # centroids: 5 points each), or measures only the neighbours of that centroid within twice
     # the point's distance (40: 75 points each, neighbour lists); the answer must stay the
-    # brute-force nearest (ties: lowest index), also after a big move.
-    from warp_ffi.host import NEIGHBOUR_LIST_MIN_POINTS, nearest_centroids
+    # brute-force nearest (ties: lowest index), also after a big move. One search object serves
+    # the steps, as in the remesher: the labels it returned go back in without a copy.
+    from warp_ffi.host import NEIGHBOUR_LIST_MIN_POINTS, CentroidSearch
 
     from geomjax._hash_grid import table_dims
 
@@ -419,9 +420,10 @@ def test_nearest_centroids_with_previous_labels_are_exact(dtype, num_centroids):
     centroids = points[rng.choice(3000, num_centroids, replace=False)]
     radius = 0.5
     dims = table_dims(points.min(0) - radius, points.max(0) + radius, radius, (32,) * 3)
+    search = CentroidSearch(points, radius, radius, dims, "cpu")
     labels = None
     for step in range(4):
-        found = nearest_centroids(points, centroids, radius, radius, dims, "cpu", labels)
+        found = search(centroids, labels)
         offsets = points[:, None, :].astype(np.float64) - centroids[None].astype(np.float64)
         np.testing.assert_array_equal(found, np.argmin(np.sum(offsets**2, axis=2), axis=1))
         labels = found
