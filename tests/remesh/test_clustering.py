@@ -426,6 +426,10 @@ def test_nearest_centroids_with_previous_labels_are_exact(dtype, num_centroids):
         found = search(centroids, labels)
         offsets = points[:, None, :].astype(np.float64) - centroids[None].astype(np.float64)
         np.testing.assert_array_equal(found, np.argmin(np.sum(offsets**2, axis=2), axis=1))
+        if step == 0:
+            # Any labels serve as a start (the remesher's first search starts from a guess).
+            np.testing.assert_array_equal(search(centroids, rng.integers(0, num_centroids, 3000)), found)
+            found = search(centroids)  # the last labels returned: the next step passes them back
         labels = found
         moved = np.array([points[labels == k].mean(axis=0) if np.any(labels == k) else centroids[k] for k in range(num_centroids)], dtype)
         # One centroid jumps across the box: its old members must find their new nearest.
