@@ -20,7 +20,7 @@ from scipy.sparse import csgraph
 from .._dispatch import warp_available
 from ._triangulation import half_edges, relabelled_triangles, row_dot
 
-__all__ = ["ClusterPatches", "MeshEdges", "SeedForest", "cluster_means", "connected_clusters", "mend_tears"]
+__all__ = ["ClusterPatches", "MeshEdges", "SeedForest", "VertexMoments", "cluster_means", "connected_clusters", "mend_tears"]
 
 # Below this many vertices SciPy's whole Dijkstra costs less than a kernel launch with its
 # arrays (decimated-knight, 502 vertices: 0.3 ms more per remesh with the kernel; even at 3,600).
@@ -151,7 +151,7 @@ class SeedForest:
         self.distance, self.parents = distance, parents.astype(np.int32)
 
 
-def connected_clusters(forest: SeedForest, x, mass, centroids, rounds: int):
+def connected_clusters(forest: SeedForest, x, moments: VertexMoments, centroids, rounds: int):
     """Lloyd rounds in which each cluster is a region of the surface, not of space.
 
     Every vertex joins the cluster whose seed (the member closest to its centroid) is nearest
@@ -164,11 +164,11 @@ def connected_clusters(forest: SeedForest, x, mass, centroids, rounds: int):
         seeds = _cluster_seeds(x, centroids, forest.labels)
         forest.assign(seeds, forest.labels[seeds])
         if round_index < rounds:
-            centroids = cluster_means(x, mass, forest.labels, centroids)
+            centroids = cluster_means(moments, forest.labels, centroids)
     return centroids
 
 
-def mend_tears(edges: MeshEdges, forest: SeedForest, x, corners, mass, centroids, max_rounds: int):
+def mend_tears(edges: MeshEdges, forest: SeedForest, x, corners, moments: VertexMoments, centroids, max_rounds: int):
     """Reassign clusters until their relabelled triangles have no fin and no pinch.
 
     * A *fin*: a cluster C squeezed between two others A and B (a thin strip across their
@@ -208,7 +208,7 @@ def mend_tears(edges: MeshEdges, forest: SeedForest, x, corners, mass, centroids
         seed_of[labels[seeds]] = seeds
         seed_of[fins] = -1
         if fins.size == 0:
-            sizes = np.bincount(labels, weights=mass, minlength=num)
+            sizes = np.bincount(labels, weights=moments.mass, minlength=num)
             pairs = np.stack([tail[crowded], head[crowded]], axis=1)
             involved = np.zeros(num, bool)
             involved[pairs.reshape(-1)] = True
@@ -221,14 +221,14 @@ def mend_tears(edges: MeshEdges, forest: SeedForest, x, corners, mass, centroids
                 seed_of[donor] = members[np.argmax(reach)]
         live = np.flatnonzero(seed_of >= 0)
         forest.assign(seed_of[live], live)
-        centroids = cluster_means(x, mass, forest.labels, centroids)
+        centroids = cluster_means(moments, forest.labels, centroids)
     return centroids, relabelled_triangles(forest.labels, corners)
 
 
 def _cluster_seeds(x, centroids, labels) -> np.ndarray:
     """Per non-empty cluster (in label order), the member vertex closest to its centroid (ties:
     the lowest vertex index)."""
-    offset = x.astype(np.float64) - np.take(centroids, labels, axis=0)
+    offset = x.astype(np.float64, copy=False) - np.take(centroids, labels, axis=0)
     distance2 = row_dot(offset, offset)
     # Linear time (a sort by label and distance costs twenty times more): each cluster's
     # smallest distance, then the lowest index that attains it.
@@ -240,12 +240,27 @@ def _cluster_seeds(x, centroids, labels) -> np.ndarray:
     return seed[seed < x.shape[0]]
 
 
-def cluster_means(x, mass, labels, centroids):
-    """Mass-weighted mean of each cluster's vertices (an empty cluster keeps its centroid)."""
+class VertexMoments(NamedTuple):
+    """The vertices' integration masses ``(V,)`` and mass-weighted coordinates ``(3, V)`` (one
+    contiguous row per coordinate: the weights of one ``np.bincount``), computed once for all
+    the cluster means of a remesh."""
+
+    mass: np.ndarray
+    weighted: np.ndarray
+
+    @classmethod
+    def of(cls, x: np.ndarray, mass: np.ndarray) -> VertexMoments:
+        return cls(mass, np.stack([mass * x[:, k] for k in range(3)]))
+
+
+def cluster_means(moments: VertexMoments, labels, centroids):
+    """Mass-weighted mean of each cluster's vertices (an empty cluster keeps its centroid), in
+    the centroids' dtype."""
     num = centroids.shape[0]
-    total = np.bincount(labels, weights=mass, minlength=num)
-    sums = np.stack([np.bincount(labels, weights=mass * x[:, k], minlength=num) for k in range(3)], axis=1)
+    labels = labels.astype(np.intp, copy=False)  # once, not in each bincount
+    total = np.bincount(labels, weights=moments.mass, minlength=num)
+    sums = np.stack([np.bincount(labels, weights=weighted, minlength=num) for weighted in moments.weighted], axis=1)
     occupied = total > 0
     centroids = centroids.copy()
-    centroids[occupied] = (sums[occupied] / total[occupied, None]).astype(x.dtype)
+    centroids[occupied] = (sums[occupied] / total[occupied, None]).astype(centroids.dtype)
     return centroids

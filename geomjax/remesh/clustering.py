@@ -25,7 +25,7 @@ from ..sample.farthest import farthest_point_sampling
 from ._flips import delaunay_flips, fold_flips
 from ._patch_projection import PatchProjector
 from ._quadrics import ClusterQuadrics, face_plane_terms
-from ._surface_clusters import ClusterPatches, MeshEdges, SeedForest, cluster_means, connected_clusters, mend_tears
+from ._surface_clusters import ClusterPatches, MeshEdges, SeedForest, VertexMoments, cluster_means, connected_clusters, mend_tears
 from ._triangulation import (
     bending_density,
     boundary_vertices,
@@ -373,6 +373,7 @@ def remesh_with_sources(
         spread = math.sqrt(float(np.average(generator_density, weights=vertex_area[vertex_area > 0]) / generator_density.min()))
     radius = min(search_radius_scale * spread, max(search_radius_scale, RADIUS_SCALE_CAP)) * spacing
     centroids = x[seeds]
+    moments = VertexMoments.of(x, mass)
     # The edge graph of the graph rounds below and the faces' plane terms of step 4 are computed
     # on the background thread while the Lloyd iterations run (their Warp kernels release the
     # GIL between the host steps).
@@ -383,9 +384,9 @@ def remesh_with_sources(
     # centroids (a search less).
     final = projector is not None
     if backend == "warp":
-        centroids, labels = _lloyd_warp(x, mass, centroids, max_iterations, radius, resolution, device, final, voxels)
+        centroids, labels = _lloyd_warp(x, moments, centroids, max_iterations, radius, resolution, device, final, voxels)
     else:
-        centroids, labels = _lloyd_jax(x, mass, centroids, max_iterations, device, final)
+        centroids, labels = _lloyd_jax(x, moments, centroids, max_iterations, device, final)
     index_dtype = jnp.int64 if np.dtype(mesh_indices.dtype) == np.int64 else jnp.int32
     if projector is not None:
         # 4. and 5. as the reference: projected centroids and their relabelled triangles.
@@ -395,8 +396,8 @@ def remesh_with_sources(
     assert edge_graph is not None  # submitted unless the reference returned above
     edges = edge_graph.result()
     forest = SeedForest(edges, labels, n_clusters)
-    centroids = connected_clusters(forest, x, mass, centroids, GRAPH_LLOYD_ROUNDS)
-    centroids, triangles = mend_tears(edges, forest, x, np.ascontiguousarray(faces.T), mass, centroids, TEAR_REPAIR_ROUNDS)
+    centroids = connected_clusters(forest, x, moments, centroids, GRAPH_LLOYD_ROUNDS)
+    centroids, triangles = mend_tears(edges, forest, x, np.ascontiguousarray(faces.T), moments, centroids, TEAR_REPAIR_ROUNDS)
     labels = forest.labels
 
     # 4. A point per cluster on its patch of the source surface, in the input frame.
@@ -560,7 +561,7 @@ class Voxels(NamedTuple):
 # Lloyd iterations.
 
 
-def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device, final, voxels: Voxels | None = None):
+def _lloyd_warp(x, moments, centroids, iterations, radius, resolution, device, final, voxels: Voxels | None = None):
     """Lloyd's iterations on the Warp hash grid: the final centroids and the labels of the last
     assignment (to the final centroids if ``final``, else to those before the last means).
 
@@ -589,21 +590,21 @@ def _lloyd_warp(x, mass, centroids, iterations, radius, resolution, device, fina
     labels = None
     for _ in range(iterations):
         labels = nearest(centroids, guess if labels is None else labels)
-        centroids = cluster_means(x, mass, labels, centroids)
+        centroids = cluster_means(moments, labels, centroids)
     if final or labels is None:
         labels = nearest(centroids, guess if labels is None else labels)
     return centroids, labels
 
 
-def _lloyd_jax(x, mass, centroids, iterations, device, final):
+def _lloyd_jax(x, moments, centroids, iterations, device, final):
     """Lloyd's iterations as :func:`_lloyd_warp`: the nearest centroids from JAX on ``device``, the
-    means from :func:`cluster_means` on the host with the host ``x`` and ``mass``, as on the Warp
+    means from :func:`cluster_means` on the host with the host ``moments``, as on the Warp
     path (the same centroids to the bit, so that the assignments agree on both backends, ties
     included)."""
     points = jax.device_put(x, device)
     labels = np.asarray(_nearest_jax(points, jax.device_put(centroids, device)))
     for iteration in range(iterations):
-        centroids = cluster_means(x, mass, labels, centroids)
+        centroids = cluster_means(moments, labels, centroids)
         if final or iteration < iterations - 1:
             labels = np.asarray(_nearest_jax(points, jax.device_put(centroids, device)))
     return centroids, labels
