@@ -811,78 +811,50 @@ def _shorter(distance_a: wp.float64, label_a: wp.int32, distance_b: wp.float64, 
 
 @wp.func
 @no_type_check
-def _heap_set(
-    heap_distance: wp.array(dtype=wp.float64), heap_label: wp.array(dtype=wp.int32), heap_vertex: wp.array(dtype=wp.int32),
-    at: wp.int32, distance: wp.float64, label: wp.int32, vertex: wp.int32,
+def _queue_push(
+    entry_distance: wp.array(dtype=wp.float64), entry_label: wp.array(dtype=wp.int32), entry_vertex: wp.array(dtype=wp.int32),
+    entry_next: wp.array(dtype=wp.int32), head: wp.array(dtype=wp.int32), tail: wp.array(dtype=wp.int32), used: wp.int32,
+    distance: wp.float64, label: wp.int32, vertex: wp.int32, width: wp.float64, overflow: wp.array(dtype=wp.int32),
 ):  # fmt: skip
-    """Writes an entry to slot ``at`` of the forest heap."""
-    heap_distance[at] = distance
-    heap_label[at] = label
-    heap_vertex[at] = vertex
-
-
-@wp.func
-@no_type_check
-def _forest_push(
-    heap_distance: wp.array(dtype=wp.float64), heap_label: wp.array(dtype=wp.int32), heap_vertex: wp.array(dtype=wp.int32),
-    size: wp.int32, distance: wp.float64, label: wp.int32, vertex: wp.int32, overflow: wp.array(dtype=wp.int32),
-):  # fmt: skip
-    """Adds an entry to the binary min-heap of ``size`` entries; returns the new size. A full
-    heap drops it and raises ``overflow[0]`` (the caller then starts over another way)."""
-    if size == heap_vertex.shape[0]:
+    """Appends an entry to the bucket of its distance (a ring of ``head.shape[0]`` buckets of
+    ``width``); returns the entries used. A full pool drops it and raises ``overflow[0]``."""
+    if used == entry_vertex.shape[0]:
         overflow[0] = 1
-        return size
-    at = size
-    while at > 0:
-        parent = (at - 1) // 2
-        if not _shorter(distance, label, heap_distance[parent], heap_label[parent]):
-            break
-        _heap_set(heap_distance, heap_label, heap_vertex, at, heap_distance[parent], heap_label[parent], heap_vertex[parent])
-        at = parent
-    _heap_set(heap_distance, heap_label, heap_vertex, at, distance, label, vertex)
-    return size + 1
-
-
-@wp.func
-@no_type_check
-def _forest_pop(
-    heap_distance: wp.array(dtype=wp.float64), heap_label: wp.array(dtype=wp.int32), heap_vertex: wp.array(dtype=wp.int32), size: wp.int32
-):  # fmt: skip
-    """Drops the first entry of the heap of ``size`` entries; returns the new size."""
-    size = size - 1
-    distance = heap_distance[size]
-    label = heap_label[size]
-    vertex = heap_vertex[size]
-    at = int(0)
-    while 2 * at + 1 < size:
-        child = 2 * at + 1
-        if child + 1 < size and _shorter(heap_distance[child + 1], heap_label[child + 1], heap_distance[child], heap_label[child]):
-            child = child + 1
-        if not _shorter(heap_distance[child], heap_label[child], distance, label):
-            break
-        _heap_set(heap_distance, heap_label, heap_vertex, at, heap_distance[child], heap_label[child], heap_vertex[child])
-        at = child
-    _heap_set(heap_distance, heap_label, heap_vertex, at, distance, label, vertex)
-    return size
+        return used
+    entry_distance[used] = distance
+    entry_label[used] = label
+    entry_vertex[used] = vertex
+    entry_next[used] = -1
+    # (min: an index within int range however far the distance.)
+    bucket = int(wp.min(distance / width, wp.float64(1.0e9))) % head.shape[0]
+    if tail[bucket] < 0:
+        head[bucket] = used
+    else:
+        entry_next[tail[bucket]] = used
+    tail[bucket] = used
+    return used + 1
 
 
 @wp.kernel
 @no_type_check
 def _grow_forest_kernel(
-    row_offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), lengths: wp.array(dtype=wp.float64),
+    row_offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32), lengths: wp.array(dtype=wp.float64), width: wp.float64,
     cleared: wp.array(dtype=wp.int32), seeds: wp.array(dtype=wp.int32), seed_labels: wp.array(dtype=wp.int32),
     distance: wp.array(dtype=wp.float64), label: wp.array(dtype=wp.int32), parent: wp.array(dtype=wp.int32),
-    heap_distance: wp.array(dtype=wp.float64), heap_label: wp.array(dtype=wp.int32), heap_vertex: wp.array(dtype=wp.int32),
-    overflow: wp.array(dtype=wp.int32),
+    entry_distance: wp.array(dtype=wp.float64), entry_label: wp.array(dtype=wp.int32), entry_vertex: wp.array(dtype=wp.int32),
+    entry_next: wp.array(dtype=wp.int32), head: wp.array(dtype=wp.int32), tail: wp.array(dtype=wp.int32), overflow: wp.array(dtype=wp.int32),
 ):  # fmt: skip
     unreached = wp.float64(wp.inf)
+    for b in range(head.shape[0]):
+        head[b] = -1
+        tail[b] = -1
     for k in range(cleared.shape[0]):
         distance[cleared[k]] = unreached
         parent[cleared[k]] = -1
     # Each cleared vertex starts from its best kept neighbour (their paths are still shortest);
-    # the candidates go to the heap first and to the vertices after, so that no cleared vertex
+    # the candidates go to the queue first and to the vertices after, so that no cleared vertex
     # reads another's candidate.
-    size = int(0)
+    used = int(0)
     for k in range(cleared.shape[0]):
         v = cleared[k]
         best = unreached
@@ -896,60 +868,69 @@ def _grow_forest_kernel(
                     best_label = label[u]
                     parent[v] = u
         if best < unreached:
-            size = _forest_push(heap_distance, heap_label, heap_vertex, size, best, best_label, v, overflow)
-    for k in range(size):
-        distance[heap_vertex[k]] = heap_distance[k]
-        label[heap_vertex[k]] = heap_label[k]
+            used = _queue_push(entry_distance, entry_label, entry_vertex, entry_next, head, tail, used, best, best_label, v, width, overflow)
+    for e in range(used):
+        distance[entry_vertex[e]] = entry_distance[e]
+        label[entry_vertex[e]] = entry_label[e]
     for k in range(seeds.shape[0]):
         s = seeds[k]
         if _shorter(wp.float64(0.0), seed_labels[k], distance[s], label[s]):
             distance[s] = wp.float64(0.0)
             label[s] = seed_labels[k]
             parent[s] = -1
-            size = _forest_push(heap_distance, heap_label, heap_vertex, size, wp.float64(0.0), seed_labels[k], s, overflow)
-    # Dijkstra on (distance, label) with lazy deletion: an entry whose vertex has changed since is
-    # stale. A vertex takes a shorter path (or as short, from a lower label); a kept vertex also
-    # follows its parent's new value when that is no longer (as short and of its label): rounding
-    # can give two paths of different lengths the same sum, and a vertex must keep a parent of
-    # its own label, or its cluster would fall apart.
-    # A valid forest pops each entry once; more pops than the heap holds mean the arrays were not
-    # a forest of the previous seeds (which could cycle): stop and report it as an overflow.
-    pops = int(0)
-    while size > 0:
-        pops += 1
-        if pops > heap_vertex.shape[0]:
-            overflow[0] = 1
-            break
-        v = heap_vertex[0]
-        d = heap_distance[0]
-        own = heap_label[0]
-        size = _forest_pop(heap_distance, heap_label, heap_vertex, size)
-        if d == distance[v] and own == label[v]:
-            for e in range(row_offsets[v], row_offsets[v + 1]):
-                j = columns[e]
-                reach = d + lengths[e]
-                if _shorter(reach, own, distance[j], label[j]) or (parent[j] == v and (reach != distance[j] or own != label[j])):
-                    distance[j] = reach
-                    label[j] = own
-                    parent[j] = v
-                    size = _forest_push(heap_distance, heap_label, heap_vertex, size, reach, own, j, overflow)
+            used = _queue_push(entry_distance, entry_label, entry_vertex, entry_next, head, tail, used, wp.float64(0.0), seed_labels[k], s, width, overflow)
+    # Label-correcting shortest paths on (distance, label), the queue's buckets in turn (entries
+    # within a bucket in their order; an entry whose vertex has changed since is stale): a
+    # vertex takes a shorter path (or as short, from a lower label), and is expanded again when
+    # it does; the fixed point is Dijkstra's, in a fraction of its time (no heap). A kept
+    # vertex also follows its parent's new value when that is no longer (as short and of its
+    # label): rounding can give two paths of different lengths the same sum, and a vertex must
+    # keep a parent of its own label, or its cluster would fall apart. A full pool ends the run
+    # (reported as an overflow: the caller starts over another way).
+    popped = int(0)
+    current = int(0)
+    while popped < used and overflow[0] == 0:
+        slot = current % head.shape[0]
+        while head[slot] >= 0 and overflow[0] == 0:
+            entry = head[slot]
+            head[slot] = entry_next[entry]
+            if head[slot] < 0:
+                tail[slot] = -1
+            popped += 1
+            v = entry_vertex[entry]
+            d = entry_distance[entry]
+            own = entry_label[entry]
+            if d == distance[v] and own == label[v]:
+                for e in range(row_offsets[v], row_offsets[v + 1]):
+                    j = columns[e]
+                    reach = d + lengths[e]
+                    if _shorter(reach, own, distance[j], label[j]) or (parent[j] == v and (reach != distance[j] or own != label[j])):
+                        distance[j] = reach
+                        label[j] = own
+                        parent[j] = v
+                        used = _queue_push(entry_distance, entry_label, entry_vertex, entry_next, head, tail, used, reach, own, j, width, overflow)
+        current += 1
+
+
+# Buckets of the forest's queue: a ring this long, each a mean edge length wide, holds the
+# distances of a cluster (a few dozen edges across) without wrapping around.
+FOREST_BUCKETS = 4096
 
 
 class EdgeGraph:
     """A symmetric edge graph in CSR form (``row_offsets`` ``(V + 1,)``, ``columns``, positive
-    float64 ``lengths``) and the heap of :func:`grow_forest`, kept on the CPU between calls."""
+    float64 ``lengths``) and the queue of :func:`grow_forest`, kept on the CPU between calls."""
 
     def __init__(self, row_offsets: np.ndarray, columns: np.ndarray, lengths: np.ndarray):
         device = "cpu"
-        self.arrays: list[wp.array] = [
-            _int32_array(row_offsets, device),
-            _int32_array(columns, device),
-            wp.array(np.ascontiguousarray(lengths, np.float64), dtype=wp.float64, device=device),
-        ]
+        lengths = np.ascontiguousarray(lengths, np.float64)
+        self.arrays: list[wp.array] = [_int32_array(row_offsets, device), _int32_array(columns, device), wp.array(lengths, dtype=wp.float64, device=device)]
+        self.width = float(np.mean(lengths)) if lengths.size else 1.0
         # A push improves a vertex or moves it with its parent: about once per cleared vertex,
-        # seed and edge of an expanded vertex (each vertex is expanded about once).
+        # seed and edge of an expanded vertex (few vertices are expanded twice).
         capacity = 2 * (row_offsets.size - 1) + columns.size + 1
-        self.heap = [wp.empty(capacity, dtype=kind, device=device) for kind in (wp.float64, wp.int32, wp.int32)]
+        self.entries = [wp.empty(capacity, dtype=kind, device=device) for kind in (wp.float64, wp.int32, wp.int32, wp.int32)]
+        self.buckets = [wp.empty(FOREST_BUCKETS, dtype=wp.int32, device=device) for _ in range(2)]
         self.overflow = wp.zeros(1, dtype=wp.int32, device=device)
 
 
@@ -968,16 +949,17 @@ def grow_forest(
     the label of a seed at that distance, reached from a neighbour of the same label (so every
     cluster is connected); a vertex whose value changed took the lowest such label. An unreached
     cleared vertex keeps its label with an infinite distance. Expands only the vertices whose
-    value changes (a sequential CPU kernel). False (the arrays then are not a forest): the heap
-    overflowed, or the update did not end within as many steps as the heap holds (arrays that
-    were not a forest of the previous seeds); start over from nothing.
+    value changes (a sequential CPU kernel, label-correcting on a queue of distance buckets).
+    False (the arrays then are not a forest): the queue's pool of entries ran out (arrays that
+    were not a forest of the previous seeds, which could cycle, or a graph that needed more
+    expansions than it holds); start over from nothing.
     """
     device = "cpu"
     graph.overflow.zero_()
-    inputs = [*graph.arrays, *(_int32_array(a, device) for a in (cleared, seeds, seed_labels))]
+    inputs = [*graph.arrays, graph.width, *(_int32_array(a, device) for a in (cleared, seeds, seed_labels))]
     # Wrapped, not copied: the kernel writes the caller's arrays.
     state: list[wp.array] = [
         wp.array(a, dtype=kind, device=device, copy=False) for a, kind in ((distance, wp.float64), (labels, wp.int32), (parents, wp.int32))
     ]
-    wp.launch(_grow_forest_kernel, dim=1, inputs=inputs, outputs=[*state, *graph.heap, graph.overflow], device=device)
+    wp.launch(_grow_forest_kernel, dim=1, inputs=inputs, outputs=[*state, *graph.entries, *graph.buckets, graph.overflow], device=device)
     return not graph.overflow.numpy()[0]

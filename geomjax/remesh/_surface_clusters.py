@@ -23,7 +23,8 @@ from ._triangulation import half_edges, relabelled_triangles, row_dot
 __all__ = ["ClusterPatches", "MeshEdges", "SeedForest", "VertexMoments", "cluster_means", "connected_clusters", "mend_tears"]
 
 # Below this many vertices SciPy's whole Dijkstra costs less than a kernel launch with its
-# arrays (decimated-knight, 502 vertices: 0.3 ms more per remesh with the kernel; even at 3,600).
+# arrays (decimated-knight, 502 vertices: 0.3 ms more per remesh with the kernel; the shared
+# meshes of 3,400 to 4,500 vertices: 0.5 to 0.8 ms less).
 FOREST_KERNEL_MIN_VERTICES = 2000
 
 
@@ -104,13 +105,15 @@ class SeedForest:
 
     Each vertex belongs to the seed nearest along the edges, reached from a neighbour of its own
     cluster (so every cluster is connected); a vertex that no seed reaches keeps its label with
-    an infinite distance. The first assignment is SciPy's multi-source Dijkstra. Later ones, with
-    warp-lang installed and at least ``FOREST_KERNEL_MIN_VERTICES`` vertices, update the forest
-    in a Warp kernel that clears only the vertices of the labels whose seed changed and grows
-    them back from their kept neighbours and the new seeds: its cost follows what changes (the
-    graph Lloyd and mending rounds move a fifth of the seeds or fewer). The distances are the
+    an infinite distance. With warp-lang installed and at least ``FOREST_KERNEL_MIN_VERTICES``
+    vertices a Warp kernel grows the forest (label-correcting shortest paths on a queue of
+    distance buckets, no heap): from nothing the first time (60% of SciPy's time on the
+    armadillo), then only where it changes: it clears the vertices of the labels whose seed
+    changed and grows them back from their kept neighbours and the new seeds, so its cost
+    follows what changes (the graph Lloyd and mending rounds move a fifth of the seeds or
+    fewer). Otherwise each assignment is SciPy's multi-source Dijkstra. The distances are the
     same either way; between seeds at exactly the same distance each picks one,
-    deterministically (SciPy by its heap order, the update the lowest label among a changed
+    deterministically (SciPy by its heap order, the kernel the lowest label among a changed
     vertex's).
 
     Attributes:
@@ -125,7 +128,7 @@ class SeedForest:
         self.parents = np.full(labels.shape[0], -1, np.int32)
         self.seed_of: np.ndarray | None = None  # (K,) the seed of each label, -1 for none
         self.num_clusters = num_clusters
-        self._kernel_graph: Any = None  # warp_ffi's EdgeGraph, made on the first update
+        self._kernel_graph: Any = None  # warp_ffi's EdgeGraph, made on the first assignment
 
     def assign(self, seeds: np.ndarray, seed_labels: np.ndarray) -> None:
         """Every vertex joins the cluster of the nearest of ``seeds`` (vertex indices, one per
@@ -133,14 +136,14 @@ class SeedForest:
         seed_of = np.full(self.num_clusters, -1, np.int64)
         seed_of[seed_labels] = seeds
         previous, self.seed_of = self.seed_of, seed_of
-        if previous is not None and self.labels.size >= FOREST_KERNEL_MIN_VERTICES and warp_available():
+        if self.labels.size >= FOREST_KERNEL_MIN_VERTICES and warp_available():
             from warp_ffi.remesh import EdgeGraph, grow_forest
 
             if self._kernel_graph is None:
                 self._kernel_graph = EdgeGraph(self.graph.indptr, self.graph.indices, self.graph.data)
             # A label whose seed changed loses all its vertices: none may keep a current seed's
-            # label along a path that no longer is the shortest.
-            cleared = np.flatnonzero((seed_of != previous)[self.labels])
+            # label along a path that no longer is the shortest. The first time, all go.
+            cleared = np.arange(self.labels.size) if previous is None else np.flatnonzero((seed_of != previous)[self.labels])
             if grow_forest(self._kernel_graph, self.distance, self.labels, self.parents, cleared, seeds, seed_labels):
                 return
         # The graph is symmetric: as a directed graph it needs no symmetrised copy (a quarter faster).

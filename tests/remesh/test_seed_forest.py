@@ -1,6 +1,6 @@
 """The remesher's clusters as a shortest-path forest of the edge graph (``SeedForest``), from
-scratch (SciPy) and updated as seeds move (the Warp kernel), checked against single-source
-Dijkstra distances from every seed."""
+scratch and updated as seeds move (the Warp kernel; SciPy without it), checked against
+single-source Dijkstra distances from every seed."""
 
 import numpy as np
 import pytest
@@ -88,7 +88,7 @@ def test_forest_is_the_nearest_seed_along_the_edges(surface, with_warp, monkeypa
     if with_warp:
         pytest.importorskip("warp")
         monkeypatch.setattr(surface_clusters, "FOREST_KERNEL_MIN_VERTICES", 0)
-    else:  # SciPy from scratch every time
+    else:  # SciPy every time
         monkeypatch.setattr(surface_clusters, "warp_available", lambda: False)
     vertices, faces = {"grid": lambda: _grid(12), "coincident": _grid_with_coincident_columns, "spheres": _jittered_spheres}[surface]()
     edges = MeshEdges.of(vertices, faces)
@@ -119,7 +119,7 @@ def test_kernel_from_scratch_takes_the_lowest_label_at_ties():
     np.testing.assert_array_equal(labels, lowest)
 
 
-def test_a_full_heap_falls_back_to_scipy(monkeypatch):
+def test_a_full_queue_falls_back_to_scipy(monkeypatch):
     pytest.importorskip("warp")
     import warp as wp
 
@@ -127,22 +127,22 @@ def test_a_full_heap_falls_back_to_scipy(monkeypatch):
 
     vertices, faces = _jittered_spheres()
     edges = MeshEdges.of(vertices, faces)
-    small_heaps = []
+    small_queues = []
 
-    class SmallHeap(EdgeGraph):
+    class SmallQueue(EdgeGraph):
         def __init__(self, *args):
             super().__init__(*args)
-            self.heap = [wp.empty(4, dtype=a.dtype, device="cpu") for a in self.heap]
-            small_heaps.append(self)
+            self.entries = [wp.empty(4, dtype=a.dtype, device="cpu") for a in self.entries]
+            small_queues.append(self)
 
-    monkeypatch.setattr("warp_ffi.remesh.EdgeGraph", SmallHeap)
+    monkeypatch.setattr("warp_ffi.remesh.EdgeGraph", SmallQueue)
     monkeypatch.setattr(surface_clusters, "FOREST_KERNEL_MIN_VERTICES", 0)
     for forest, seed_of in _moves(edges, 16, np.random.default_rng(3)):
         before = forest.labels.copy()
         live = np.flatnonzero(seed_of >= 0)
         forest.assign(seed_of[live], live)
         _check_forest(forest, edges, seed_of, before)
-    assert small_heaps and small_heaps[0].overflow.numpy()[0] == 1
+    assert small_queues and small_queues[0].overflow.numpy()[0] == 1
 
 
 @pytest.mark.parametrize("start", ["kept", "cleared"])
