@@ -10,10 +10,10 @@ JAX calls then reuse:
   ``mesh_words``), :func:`refit_mesh`; ``warp_ffi._grid.build_mesh`` builds the ``wp.Mesh``.
 * Poisson-disk sampling (``warp_ffi.poisson`` re-exports these): :func:`reject_near_accepted`,
   :func:`resolve_conflicts`, :func:`neighbour_lists` and :func:`eliminate`.
-* The clustering remesher's :func:`nearest_centroids` and :class:`CentroidSearch`, :class:`PatchSearch` with
-  :func:`patch_closest_faces`, and :class:`EdgeGraph` with :func:`grow_forest` (its clusters as
-  a shortest-path forest of the edge graph, updated where the seeds changed), re-exported by
-  ``warp_ffi.remesh``.
+* The clustering remesher's :func:`nearest_centroids` and :class:`CentroidSearch`,
+  :class:`PatchSearch` with :func:`patch_closest_faces`, :func:`vertex_plane_terms`, and
+  :class:`EdgeGraph` with :func:`grow_forest` (its clusters as a shortest-path forest of the
+  edge graph, updated where the seeds changed), re-exported by ``warp_ffi.remesh``.
 
 Inputs arrive validated (no checks here).
 
@@ -72,7 +72,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "EdgeGraph", "grow_forest",
+    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "vertex_plane_terms", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -796,6 +796,64 @@ def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.nda
     ]
     launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=search.min_chunk)
     return found.numpy()
+
+
+# ---------------------------------------------------------------------------------------------
+# The remesher's plane quadric terms, summed into the vertices.
+
+
+@wp.kernel
+@no_type_check
+def _vertex_plane_terms_kernel(
+    faces: wp.array(dtype=wp.int32), first_corners: wp.array2d(dtype=wp.float64), doubled_normals: wp.array2d(dtype=wp.float64),
+    face_area: wp.array(dtype=wp.float64), sums: wp.array2d(dtype=wp.float64),
+):  # fmt: skip
+    # One thread, faces and corners in order, each product and sum rounded as NumPy's: the sums
+    # equal geomjax's NumPy twin (its face terms, np.bincount over the flattened faces) to the bit.
+    term = wp.vector(dtype=wp.float64, length=12)
+    for f in range(face_area.shape[0]):
+        area = face_area[f]
+        scale = wp.float64(1.0)
+        if area > wp.float64(0.0):
+            scale = wp.float64(2.0) * area
+        n0 = doubled_normals[f, 0] / scale
+        n1 = doubled_normals[f, 1] / scale
+        n2 = doubled_normals[f, 2] / scale
+        third = area / wp.float64(3.0)
+        offset = n0 * first_corners[f, 0] + n1 * first_corners[f, 1]
+        offset = offset + n2 * first_corners[f, 2]
+        # n n^T's upper triangle (row by row), (n . p) n, n; each times a third of the area.
+        term[0] = (third * n0) * n0
+        term[1] = (third * n0) * n1
+        term[2] = (third * n0) * n2
+        term[3] = (third * n1) * n1
+        term[4] = (third * n1) * n2
+        term[5] = (third * n2) * n2
+        term[6] = (third * offset) * n0
+        term[7] = (third * offset) * n1
+        term[8] = (third * offset) * n2
+        term[9] = third * n0
+        term[10] = third * n1
+        term[11] = third * n2
+        for k in range(3):
+            v = faces[3 * f + k]
+            for j in range(12):
+                sums[j, v] = sums[j, v] + term[j]
+
+
+def vertex_plane_terms(faces: np.ndarray, first_corners: np.ndarray, doubled_normals: np.ndarray, face_area: np.ndarray, num_vertices: int) -> np.ndarray:
+    """``(12, V)`` float64: geomjax's remesher's plane terms (``geomjax.remesh._quadrics``) of
+    each face ``(F, 3)``, summed into its corners, from the faces' first corners, doubled
+    normals ``(F, 3)`` and areas ``(F,)`` (float64). One sequential CPU kernel outside the GIL
+    (the remesher runs it on a second thread); the same bits as the NumPy twin."""
+    device = "cpu"
+    sums = wp.zeros((12, num_vertices), dtype=wp.float64, device=device)
+    floats: list[wp.array] = [
+        wp.array(np.ascontiguousarray(a, np.float64), dtype=wp.float64, device=device) for a in (first_corners, doubled_normals, face_area)
+    ]
+    inputs = [_int32_array(faces, device), *floats]
+    wp.launch(_vertex_plane_terms_kernel, dim=1, inputs=inputs, outputs=[sums], device=device)
+    return sums.numpy()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
-"""The clustering remesher's host-side kernels: nearest centroids on a Warp hash grid, and the
-nearest face of each point among its cluster's faces.
+"""The clustering remesher's host-side kernels: nearest centroids on a Warp hash grid, the
+nearest face of each point among its cluster's faces, the plane quadric terms summed into the
+vertices, and the clusters as a shortest-path forest of the edge graph.
 
 Host-side NumPy functions; they live in :mod:`warp_ffi.host` with the other host-side entry
 points and are re-exported here under the names geomjax imports.
@@ -11,3 +12,4 @@ from .host import PatchSearch as PatchSearch
 from .host import grow_forest as grow_forest
 from .host import nearest_centroids as nearest_centroids
 from .host import patch_closest_faces as patch_closest_faces
+from .host import vertex_plane_terms as vertex_plane_terms

@@ -14,10 +14,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._surface_clusters import ClusterPatches
+from .._dispatch import warp_available
 from ._triangulation import row_dot
 
-__all__ = ["ClusterQuadrics", "face_plane_terms"]
+__all__ = ["ClusterQuadrics", "face_plane_terms", "vertex_plane_terms"]
 
 # A direction counts as constrained when its eigenvalue is at least this fraction of the largest.
 # Placement uses the lower threshold (it reaches for tips and creases), relaxation the higher one
@@ -43,11 +43,13 @@ class ClusterQuadrics(NamedTuple):
     normals: np.ndarray  # (K, 3) sum a n: the cluster's mean normal times its area
 
     @classmethod
-    def of(cls, terms: np.ndarray, patches: ClusterPatches) -> ClusterQuadrics:
-        """From the faces' plane terms (:func:`face_plane_terms`) and the clusters' patches."""
-        # Per cluster, the sum over its patch, each face counted once per corner in the cluster.
-        sums = patches.incidence(terms.shape[0]) @ terms
-        num = patches.offsets.size - 1
+    def of(cls, vertex_terms: np.ndarray, labels: np.ndarray, num: int) -> ClusterQuadrics:
+        """From the vertices' plane terms (:func:`vertex_plane_terms`) and their ``labels``
+        ``(V,)`` in ``[0, num)``."""
+        # Per cluster, the sum over its vertices: over its patch, each face counted once per
+        # corner in the cluster.
+        labels = labels.astype(np.intp, copy=False)  # once, not in each bincount
+        sums = np.stack([np.bincount(labels, weights=row, minlength=num) for row in vertex_terms], axis=1)
         quadric = np.zeros((num, 3, 3))
         quadric[:, _ROWS, _COLUMNS] = quadric[:, _COLUMNS, _ROWS] = sums[:, : _ROWS.size]
         rhs, normals = sums[:, _ROWS.size : _ROWS.size + 3], sums[:, _ROWS.size + 3 :]
@@ -83,11 +85,25 @@ class ClusterQuadrics(NamedTuple):
         return self.weights[:, 1] / np.maximum(self.weights[:, 2], np.finfo(np.float64).tiny)
 
 
+def vertex_plane_terms(faces: np.ndarray, first_corners: np.ndarray, doubled_normals: np.ndarray, face_area: np.ndarray, num_vertices: int) -> np.ndarray:
+    """``(12, V)`` float64: per vertex, the :func:`face_plane_terms` of its faces ``(F, 3)``,
+    summed once per corner. They do not depend on the clusters: the remesher computes them on
+    its background thread during the Lloyd iterations; with warp-lang in a kernel outside the
+    GIL (``warp_ffi.remesh.vertex_plane_terms``, the same bits: the same roundings, in the
+    same order), so that they hold the main thread up as little as possible."""
+    if warp_available():
+        from warp_ffi.remesh import vertex_plane_terms as kernel
+
+        return kernel(faces, first_corners, doubled_normals, face_area, num_vertices)
+    terms = face_plane_terms(first_corners, doubled_normals, face_area)
+    corners = faces.reshape(-1)
+    return np.stack([np.bincount(corners, weights=np.repeat(terms[:, j], 3), minlength=num_vertices) for j in range(terms.shape[1])])
+
+
 def face_plane_terms(first_corners: np.ndarray, doubled_normals: np.ndarray, face_area: np.ndarray) -> np.ndarray:
     """``(F, 12)`` float64: per face, a third of its area times its plane's six quadric entries
     (``n n^T``, upper triangle), ``(n . p) n`` and ``n``, from the faces' first corners ``p``,
-    ``(b - a) x (c - a)`` and areas (float64). They do not depend on the clusters: the remesher
-    computes them on its background thread during the Lloyd iterations."""
+    ``(b - a) x (c - a)`` and areas (float64)."""
     normal = doubled_normals / np.where(face_area > 0, 2 * face_area, 1.0)[:, None]
     third = face_area / 3
     offset = row_dot(normal, first_corners)

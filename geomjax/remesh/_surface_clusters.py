@@ -94,11 +94,6 @@ class ClusterPatches(NamedTuple):
             offsets[1:] += np.cumsum(offsets[1:] == offsets[:-1], dtype=np.int32)
         return cls(offsets, face, corners)
 
-    def incidence(self, num_faces: int) -> sparse.csr_matrix:
-        """``(K, F)`` sparse matrix of corner counts: ``incidence @ per_face`` sums a per-face
-        quantity over each cluster's patch, a face counted once per corner in the cluster."""
-        return sparse.csr_matrix((self.corners.astype(np.float64), self.faces, self.offsets), shape=(self.offsets.size - 1, num_faces))
-
 
 class SeedForest:
     """The clusters as a shortest-path forest of the mesh's edge graph, kept as their seeds move.

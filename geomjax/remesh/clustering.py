@@ -24,7 +24,7 @@ from .._validate import check_host_surface, check_host_vertex_field, check_integ
 from ..sample.farthest import farthest_point_sampling
 from ._flips import delaunay_flips, fold_flips
 from ._patch_projection import PatchProjector
-from ._quadrics import ClusterQuadrics, face_plane_terms
+from ._quadrics import ClusterQuadrics, vertex_plane_terms
 from ._surface_clusters import ClusterPatches, MeshEdges, SeedForest, VertexMoments, cluster_means, connected_clusters, mend_tears
 from ._triangulation import (
     bending_density,
@@ -374,11 +374,11 @@ def remesh_with_sources(
     radius = min(search_radius_scale * spread, max(search_radius_scale, RADIUS_SCALE_CAP)) * spacing
     centroids = x[seeds]
     moments = VertexMoments.of(x, mass)
-    # The edge graph of the graph rounds below and the faces' plane terms of step 4 are computed
-    # on the background thread while the Lloyd iterations run (their Warp kernels release the
-    # GIL between the host steps).
+    # The edge graph of the graph rounds below and the vertices' plane terms of step 4 are
+    # computed on the background thread while the Lloyd iterations run (their Warp kernels
+    # release the GIL between the host steps).
     edge_graph = None if projector is not None else _background().submit(MeshEdges.of, x, faces)
-    plane_terms = None if projector is not None else _background().submit(face_plane_terms, first_corners, doubled_normals, face_area)
+    plane_terms = None if projector is not None else _background().submit(vertex_plane_terms, faces, first_corners, doubled_normals, face_area, num_vertices)
     # The reference's labels are those of a last assignment to the final centroids; the graph
     # rounds below replace them, and take their seeds from the assignment that gave the final
     # centroids (a search less).
@@ -404,7 +404,7 @@ def remesh_with_sources(
     patches = ClusterPatches.of(faces, labels, n_clusters)
     project = PatchProjector(vertices, faces, patches, backend)
     assert plane_terms is not None  # submitted with the edge graph
-    quadrics = ClusterQuadrics.of(plane_terms.result(), patches)
+    quadrics = ClusterQuadrics.of(plane_terms.result(), labels, n_clusters)
     positions, source_faces, barycentric = project((quadrics.snap(centroids, spacing) * scale + centre).astype(dtype))
 
     # 5. Topology (the relabelled triangles came with the last check of the mending).

@@ -8,7 +8,7 @@ import pytest
 from benchmarks import _quality as quality
 from geomjax import icosphere
 from geomjax.remesh._patch_projection import PatchProjector
-from geomjax.remesh._quadrics import ClusterQuadrics, face_plane_terms
+from geomjax.remesh._quadrics import ClusterQuadrics, vertex_plane_terms
 from geomjax.remesh._surface_clusters import ClusterPatches
 
 pytest.importorskip("warp")
@@ -41,12 +41,22 @@ def test_patches_are_the_faces_touching_each_cluster():
     assert offsets[6] - offsets[5] == 1 and np.any(corners == 2)
 
 
-def test_quadrics_sum_each_cluster_s_corner_planes():
+def test_quadrics_sum_each_cluster_s_corner_planes(monkeypatch):
     vertices, faces, labels = _sphere_with_clusters()
     corners = vertices[faces]
     doubled = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     area = np.linalg.norm(doubled, axis=1) / 2
-    quadrics = ClusterQuadrics.of(face_plane_terms(corners[:, 0], doubled, area), ClusterPatches.of(faces, labels, NUM_CLUSTERS))
+    terms = vertex_plane_terms(faces, corners[:, 0], doubled, area, vertices.shape[0])
+    quadrics = ClusterQuadrics.of(terms, labels, NUM_CLUSTERS)
+    # Without warp-lang NumPy computes the same terms and sums them in the same order, to the
+    # bit; faces with a repeated corner (zero area) add nothing.
+    degenerate = np.concatenate([faces, [[3, 3, 7], [5, 5, 5]]])
+    corners = vertices[degenerate]
+    doubled = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area = np.linalg.norm(doubled, axis=1) / 2
+    with_kernel = vertex_plane_terms(degenerate, corners[:, 0], doubled, area, vertices.shape[0])
+    monkeypatch.setattr("geomjax.remesh._quadrics.warp_available", lambda: False)
+    np.testing.assert_array_equal(vertex_plane_terms(degenerate, corners[:, 0], doubled, area, vertices.shape[0]), with_kernel)
     # A plain loop: each corner of each face adds a third of the face's area times its plane.
     expected = np.zeros((NUM_CLUSTERS, 3, 3))
     expected_rhs = np.zeros((NUM_CLUSTERS, 3))
