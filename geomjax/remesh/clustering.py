@@ -15,7 +15,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._blocking import map_query_blocks, query_block_size
-from .._dispatch import platform_of, select_implementation
+from .._dispatch import platform_of, select_implementation, warp_available
 from .._errors import raises_documented_errors
 from .._hash_grid import table_dims
 from .._projection import SurfaceProjector
@@ -339,8 +339,7 @@ def remesh_with_sources(
     if scale == 0.0:
         raise ValueError(f"{_NAME}: the surface has zero area (all vertices coincide)")
     x = ((host - centre) / scale).astype(dtype)
-    first_corners, doubled_normals = _doubled_normals(x, faces)
-    face_area = 0.5 * np.sqrt(row_dot(doubled_normals, doubled_normals))
+    first_corners, doubled_normals, face_area = _face_geometry(x, faces)
     total_area = float(face_area.sum())
     if not total_area > 0.0:
         raise ValueError(f"{_NAME}: the surface has zero area")
@@ -516,12 +515,18 @@ def _checked_density(vertex_density, vertices: jax.Array) -> np.ndarray | None:
 # Geometry and seeding (host NumPy, shared by both backends).
 
 
-def _doubled_normals(x: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each face's first corner and ``(b - a) x (c - a)`` (float64, ``(F, 3)`` each): areas and
-    planes, once for the masses and the quadrics."""
+def _face_geometry(x: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each face's first corner, ``(b - a) x (c - a)`` (``(F, 3)`` each) and area ``(F,)``, in
+    float64: once for the masses and the quadrics. With warp-lang a kernel on the CPU cores
+    (``warp_ffi.remesh.face_geometry``, the same bits: the same roundings in the same order)."""
+    if warp_available():
+        from warp_ffi.remesh import face_geometry
+
+        return face_geometry(x, faces)
     # np.take gathers rows several times faster than fancy indexing.
     a, b, c = (np.take(x, faces[:, k], axis=0).astype(np.float64, copy=False) for k in range(3))
-    return a, row_cross(b - a, c - a)
+    doubled_normals = row_cross(b - a, c - a)
+    return a, doubled_normals, 0.5 * np.sqrt(row_dot(doubled_normals, doubled_normals))
 
 
 def _stratified_seeds(x: np.ndarray, mass: np.ndarray, count: int, width: float, rng: np.random.Generator) -> tuple[np.ndarray, Voxels]:

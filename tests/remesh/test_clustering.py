@@ -402,6 +402,29 @@ def test_low_precision_vertex_density_is_accepted(implementation):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_face_geometry_kernel_gives_numpy_s_bits(dtype, monkeypatch):
+    # The masses and planes come from the faces' corners, doubled normals and areas: the Warp
+    # kernel rounds each step as NumPy does (with warp-lang missing), so that the remesh is the
+    # same either way; and both are the geometry (an independent float64 cross product).
+    pytest.importorskip("warp")
+    import geomjax.remesh.clustering as clustering
+
+    vertices, faces = _jittered_sphere(dtype=dtype)
+    vertices, faces = np.asarray(vertices) * 1e3, np.asarray(faces)
+    kernel = clustering._face_geometry(vertices, faces)
+    monkeypatch.setattr(clustering, "warp_available", lambda: False)
+    twin = clustering._face_geometry(vertices, faces)
+    for ours, theirs in zip(kernel, twin, strict=True):
+        assert ours.dtype == theirs.dtype == np.float64
+        np.testing.assert_array_equal(ours, theirs)
+    corners = vertices.astype(np.float64)[faces]
+    doubled = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    np.testing.assert_array_equal(kernel[0], corners[:, 0])
+    np.testing.assert_allclose(kernel[1], doubled, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(kernel[2], np.linalg.norm(doubled, axis=1) / 2, rtol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("num_centroids", [40, 600])
 def test_nearest_centroids_with_previous_labels_are_exact(dtype, num_centroids):
     # Lloyd's warp assignment, given the previous labels, skips the search for points much
