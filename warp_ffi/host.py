@@ -958,9 +958,10 @@ def _grow_forest_kernel(
         parent[cleared[k]] = -1
     # Each cleared vertex starts from its best kept neighbour (their paths are still shortest);
     # the candidates go to the queue first and to the vertices after, so that no cleared vertex
-    # reads another's candidate.
+    # reads another's candidate. (All cleared: there is none to start from.)
     used = int(0)
-    for k in range(cleared.shape[0]):
+    kept = cleared.shape[0] < distance.shape[0]
+    for k in range(cleared.shape[0] if kept else 0):
         v = cleared[k]
         best = unreached
         best_label = int(0)
