@@ -55,6 +55,9 @@ MAX_HASH_GRID_RESOLUTION = 256
 RADIUS_SCALE_CAP = 12.0  # the search radius never exceeds max(s, 12) cluster spacings
 MASS_FLOOR = float(np.finfo(np.float32).tiny)
 RELAXATION_ITERATIONS = 4  # surface relaxation rounds after the clustering (see remeshing)
+# From this many faces the Warp kernel computes the faces' geometry faster than NumPy (icospheres:
+# 20k faces 0.36 against 0.28 ms, 82k faces 1.6 against 3.1 ms).
+FACE_KERNEL_MIN_FACES = 32768
 # Relaxation keeps each vertex within this many cluster spacings of its cluster's point: it
 # shapes the triangles, it must not drag a vertex off the feature its cluster holds (a tip).
 RELAXATION_REACH = 0.5
@@ -517,9 +520,10 @@ def _checked_density(vertex_density, vertices: jax.Array) -> np.ndarray | None:
 
 def _face_geometry(x: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each face's first corner, ``(b - a) x (c - a)`` (``(F, 3)`` each) and area ``(F,)``, in
-    float64: once for the masses and the quadrics. With warp-lang a kernel on the CPU cores
-    (``warp_ffi.remesh.face_geometry``, the same bits: the same roundings in the same order)."""
-    if warp_available():
+    float64: once for the masses and the quadrics. With warp-lang and at least
+    ``FACE_KERNEL_MIN_FACES`` faces a kernel on the CPU cores (``warp_ffi.remesh.face_geometry``,
+    the same bits: the same roundings in the same order)."""
+    if faces.shape[0] >= FACE_KERNEL_MIN_FACES and warp_available():
         from warp_ffi.remesh import face_geometry
 
         return face_geometry(x, faces)

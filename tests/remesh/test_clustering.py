@@ -411,6 +411,7 @@ def test_face_geometry_kernel_gives_numpy_s_bits(dtype, monkeypatch):
 
     vertices, faces = _jittered_sphere(dtype=dtype)
     vertices, faces = np.asarray(vertices) * 1e3, np.asarray(faces)
+    monkeypatch.setattr(clustering, "FACE_KERNEL_MIN_FACES", 0)
     kernel = clustering._face_geometry(vertices, faces)
     monkeypatch.setattr(clustering, "warp_available", lambda: False)
     twin = clustering._face_geometry(vertices, faces)
