@@ -18,7 +18,6 @@ __all__ = [
     "column_max",
     "column_min",
     "degenerate_vertices",
-    "distinct_triangles",
     "relabelled_triangles",
     "drop_crowded_edges",
     "half_edges",
@@ -99,16 +98,11 @@ def half_edges(triangles: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarr
 def relabelled_triangles(labels: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """The triangles ``corners`` (``(3, F)``: each face's first, second and third corner, e.g.
     ``faces.T`` made contiguous, so that each corner's labels are read and compared in
-    sequence) relabelled by ``labels``, as :func:`distinct_triangles` keeps them."""
+    sequence) relabelled by ``labels``: those with three distinct labels, each once (in any
+    orientation, the first occurrence)."""
     a, b, c = np.take(labels, corners)
     keep = np.flatnonzero((a != b) & (b != c) & (a != c))
-    return distinct_triangles(np.stack([a[keep], b[keep], c[keep]], axis=1))
-
-
-def distinct_triangles(labelled: np.ndarray) -> np.ndarray:
-    """Relabelled triangles -> those with three distinct labels, each once (in any orientation)."""
-    distinct = (labelled[:, 0] != labelled[:, 1]) & (labelled[:, 1] != labelled[:, 2]) & (labelled[:, 0] != labelled[:, 2])
-    triangles = labelled[distinct]
+    triangles = np.stack([a[keep], b[keep], c[keep]], axis=1)
     if triangles.shape[0] == 0:
         return triangles
     # Duplicates in any orientation: keep the first occurrence (lexsort is stable).
