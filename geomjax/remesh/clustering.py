@@ -6,7 +6,7 @@ import functools
 import inspect
 import math
 import warnings
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from typing import NamedTuple
 
 import jax
@@ -63,6 +63,12 @@ FACE_KERNEL_MIN_FACES = 32768
 RELAXATION_REACH = 0.5
 GRAPH_LLOYD_ROUNDS = 2  # Lloyd rounds on the surface's edge graph after the Euclidean ones
 TEAR_REPAIR_ROUNDS = 12  # rounds of mending fins and pinches of the cluster layout
+# Below this many vertices the background thread's work runs on the calling thread: handing it
+# over costs more than the overlap saves. A core that has idled since the last call takes about
+# 0.1 ms to wake, and the handed-over NumPy work contends for the GIL; remeshes to 500 clusters
+# after a 50 ms pause were 1.4-2 ms faster inline on the shared meshes of 500 to 4,500 vertices,
+# even on lion's 8,400 and 0.5 ms slower on camelhead's 11,400.
+BACKGROUND_MIN_VERTICES = 8192
 
 
 class RemeshTopologyWarning(UserWarning):
@@ -333,8 +339,10 @@ def remesh_with_sources(
             f"{_NAME}: vertex coordinates must be at most {limit:.3g} in magnitude in {dtype} (their squares overflow), got {largest:.3g}: rescale the mesh"
         )
     # The reference's search tree (Warp kernels, which run outside the GIL) is built on another
-    # thread while the host work of steps 1 to 3 runs.
-    projector = _background().submit(SurfaceProjector, vertices, faces, backend, _NAME) if reference else None
+    # thread while the host work of steps 1 to 3 runs (on larger meshes: see
+    # BACKGROUND_MIN_VERTICES).
+    helper = _background() if num_vertices >= BACKGROUND_MIN_VERTICES else _Inline()
+    projector = helper.submit(SurfaceProjector, vertices, faces, backend, _NAME) if reference else None
 
     # 1. Normalised frame, areas and integration masses.
     centre = (low + high) / 2
@@ -379,8 +387,8 @@ def remesh_with_sources(
     # The edge graph of the graph rounds below and the vertices' plane terms of step 4 are
     # computed on the background thread while the Lloyd iterations run (their Warp kernels
     # release the GIL between the host steps).
-    edge_graph = None if projector is not None else _background().submit(MeshEdges.of, x, faces)
-    plane_terms = None if projector is not None else _background().submit(vertex_plane_terms, faces, first_corners, doubled_normals, face_area, num_vertices)
+    edge_graph = None if projector is not None else helper.submit(MeshEdges.of, x, faces)
+    plane_terms = None if projector is not None else helper.submit(vertex_plane_terms, faces, first_corners, doubled_normals, face_area, num_vertices)
     # The reference's labels are those of a last assignment to the final centroids; the graph
     # rounds below replace them, and take their seeds from the assignment that gave the final
     # centroids (a search less).
@@ -455,6 +463,18 @@ def remesh_with_sources(
 @functools.cache
 def _background() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=1, thread_name_prefix="geomjax-remesh")
+
+
+class _Inline(Executor):
+    """An executor that runs each call at once, on the calling thread."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as error:  # raised by .result(), as from the thread
+            future.set_exception(error)
+        return future
 
 
 def _within_reach(anchors: np.ndarray, points: np.ndarray, reach: float) -> np.ndarray:
