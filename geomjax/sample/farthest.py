@@ -36,7 +36,8 @@ def farthest_point_sampling(
     Sample 0 is the start (index 0, ``start_index``, or a random index per cloud); sample ``k``
     is the point maximising the Euclidean distance to its nearest earlier sample (ties: the
     lowest index). Distances are computed in float32 whatever the input dtype, as the reference
-    does (so the order is the reference's). The result holds distinct indices (coincident points
+    does (so the order is the reference's): each squared coordinate difference rounded, summed in
+    coordinate order (no fused multiply-adds). The result holds distinct indices (coincident points
     are taken only once every other point is) and is a 2-approximation of the best k-center
     covering. Gather the points with ``points[indices]`` (``jnp.take_along_axis(points,
     indices[..., None], axis=-2)`` for a batch). O(N K) work in a ``lax.fori_loop`` keeping one
@@ -141,16 +142,26 @@ def _farthest_points(points: jax.Array, num_samples: int, start: jax.Array) -> j
     points = jax.lax.stop_gradient(points)
 
     def one_set(x, start_index):
-        num_points = x.shape[0]
+        num_points, num_dims = x.shape
+        # Coordinates as rows (D, N): the update below is then elementwise over N, which XLA's
+        # CPU loops vectorise (a reduction over the short last axis of (N, D) they do not).
+        rows = x.T
+        index = jnp.arange(num_points, dtype=jnp.int32)
         # Chosen points get distance -1, so they never win the argmax again.
         distance = jnp.full((num_points,), jnp.inf, x.dtype).at[start_index].set(-1)
         chosen = jnp.zeros((num_samples,), jnp.int32).at[0].set(start_index)
 
         def step(k, state):
             chosen, distance = state
-            offset = x - x[chosen[k - 1]]
-            distance = jnp.minimum(distance, jnp.sum(offset * offset, axis=-1))
-            pick = jnp.argmax(distance).astype(jnp.int32)
+            offset = rows - x[chosen[k - 1]][:, None]
+            # max(square, 0) (a no-op) keeps XLA from fusing a product into the sum: each square
+            # is rounded and the sum runs in coordinate order, as NumPy rounds it.
+            squares = jnp.maximum(offset * offset, 0)
+            distance = jnp.minimum(distance, functools.reduce(jnp.add, [squares[d] for d in range(num_dims)]))
+            # argmax as two plain reductions (XLA's CPU argmax costs several times more): the
+            # first index of the largest distance, or of the first NaN, as argmax returns.
+            largest = jnp.max(distance)
+            pick = jnp.min(jnp.where((distance == largest) | jnp.isnan(distance), index, num_points))
             return chosen.at[k].set(pick), distance.at[pick].set(-1)
 
         chosen, _ = jax.lax.fori_loop(1, num_samples, step, (chosen, distance))
