@@ -21,7 +21,7 @@ from .._hash_grid import table_dims
 from .._projection import SurfaceProjector
 from .._sharding import outside_context_mesh
 from .._validate import check_host_surface, check_host_vertex_field, check_integer, check_real_scalar
-from ..sample.farthest import farthest_point_sampling
+from ..sample.farthest import farthest_point_order
 from ._flips import delaunay_flips, fold_flips
 from ._patch_projection import PatchProjector
 from ._quadrics import ClusterQuadrics, vertex_plane_terms
@@ -363,13 +363,12 @@ def remesh_with_sources(
         raise ValueError(f"{_NAME}: the integration masses are not finite (density out of range)")
     spacing = math.sqrt(total_area / n_clusters)
 
-    # 2. Seeds.
+    # 2. Seeds (farthest-point ones: XLA computes them while the host work submitted below runs).
     rng = np.random.default_rng(0)
-    voxels = None
+    voxels = picked = None
     if n_clusters <= farthest_point_threshold:
         pool = rng.choice(num_vertices, min(num_vertices, farthest_point_oversampling * n_clusters), replace=False, p=mass / mass.sum())
-        picked = np.asarray(farthest_point_sampling(jax.device_put(x[pool], device), n_clusters))
-        seeds = pool[picked]
+        picked = farthest_point_order(x[pool], n_clusters, device)
     elif rho is not None:
         weight = np.maximum(vertex_area * np.sqrt(rho), MASS_FLOOR)
         seeds = rng.choice(num_vertices, n_clusters, replace=False, p=weight / weight.sum())
@@ -382,13 +381,16 @@ def remesh_with_sources(
         generator_density = np.sqrt(rho[vertex_area > 0])
         spread = math.sqrt(float(np.average(generator_density, weights=vertex_area[vertex_area > 0]) / generator_density.min()))
     radius = min(search_radius_scale * spread, max(search_radius_scale, RADIUS_SCALE_CAP)) * spacing
-    centroids = x[seeds]
     moments = VertexMoments.of(x, mass)
     # The edge graph of the graph rounds below and the vertices' plane terms of step 4 are
     # computed on the background thread while the Lloyd iterations run (their Warp kernels
-    # release the GIL between the host steps).
+    # release the GIL between the host steps); below BACKGROUND_MIN_VERTICES, on this thread
+    # while XLA computes farthest-point seeds.
     edge_graph = None if projector is not None else helper.submit(MeshEdges.of, x, faces)
     plane_terms = None if projector is not None else helper.submit(vertex_plane_terms, faces, first_corners, doubled_normals, face_area, num_vertices)
+    if picked is not None:
+        seeds = pool[np.asarray(picked)[0]]
+    centroids = x[seeds]
     # The reference's labels are those of a last assignment to the final centroids; the graph
     # rounds below replace them, and take their seeds from the assignment that gave the final
     # centroids (a search less).

@@ -137,6 +137,14 @@ def _start_indices(random_start, start_index, num_clouds: int, num_points: int, 
     return runtime_check(start, (start < 0) | (start >= num_points), f"start_index must lie in [0, {num_points})")
 
 
+def farthest_point_order(points: np.ndarray, num_samples: int, device: jax.Device) -> jax.Array:
+    """:func:`farthest_point_sampling`'s ``(1, K)`` indices from index 0 for host points ``(N, D)``
+    (finite, ``1 <= K <= N``: unchecked), computed on ``device`` without waiting: XLA runs the
+    loop while the caller goes on (the public op blocks, to raise its runtime errors typed)."""
+    cloud = jax.device_put(np.asarray(points, np.float32)[None], device)
+    return _farthest_points(cloud, num_samples, np.zeros(1, np.int32))
+
+
 @functools.partial(jax.jit, static_argnums=(1,))
 def _farthest_points(points: jax.Array, num_samples: int, start: jax.Array) -> jax.Array:
     points = jax.lax.stop_gradient(points)
