@@ -82,6 +82,13 @@ def _int32_array(values: np.ndarray, device) -> wp.array:
     return wp.array(np.ascontiguousarray(values, np.int32).reshape(-1), dtype=wp.int32, device=device)
 
 
+def _host_view(values: np.ndarray, dtype, device: str) -> wp.array:
+    """A ``wp.array`` of C-contiguous host ``values`` (of ``dtype``'s NumPy type): on the CPU
+    their memory itself, not a copy (a copy costs 10 us even for a few hundred rows; the array
+    holds a reference to ``values``), on another device a copy."""
+    return wp.array(values, dtype=dtype, device=device, copy=not wp.get_device(device).is_cpu)
+
+
 # ---------------------------------------------------------------------------------------------
 # Mesh preparation.
 
@@ -606,7 +613,7 @@ class CentroidSearch:
         """
         device, scalar = self.device, WARP_SCALAR[self.dtype]
         num_points = self.points.shape[0]
-        centroids_wp: wp.array = wp.array(centroids, dtype=self.vec, device=device)
+        centroids_wp: wp.array = _host_view(np.ascontiguousarray(centroids, self.dtype), self.vec, device)
         labels = wp.empty(num_points, dtype=wp.int32, device=device)
         if previous is None:
             previous_wp = wp.empty(0, dtype=wp.int32, device=device)
@@ -784,8 +791,8 @@ def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.nda
     found = wp.empty(points.shape[0], dtype=wp.int32, device=search.device)
     vertices, faces, offsets, candidates, centres, radii, tolerances = search.arrays
     inputs = [
-        wp.array(points, dtype=vec, device=search.device),
-        wp.array(patches, dtype=wp.int32, device=search.device),
+        _host_view(np.ascontiguousarray(points, search.dtype), vec, search.device),
+        _host_view(np.ascontiguousarray(patches, np.int32), wp.int32, search.device),
         vertices,
         faces,
         offsets,
@@ -793,7 +800,7 @@ def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.nda
         centres,
         radii,
         tolerances,
-        _int32_array(np.zeros(0, np.int32) if hints is None else hints, search.device),
+        _host_view(np.ascontiguousarray(np.zeros(0) if hints is None else hints, np.int32), wp.int32, search.device),
     ]
     launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=search.min_chunk)
     return found.numpy()
