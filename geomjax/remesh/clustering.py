@@ -591,6 +591,7 @@ class Voxels(NamedTuple):
 def _lloyd_warp(x, moments, centroids, iterations, radius, resolution, device, final, voxels: Voxels | None = None):
     """Lloyd's iterations on the Warp hash grid: the final centroids and the labels of the last
     assignment (to the final centroids if ``final``, else to those before the last means).
+    Labels that repeat are a fixed point: the iterations stop there, with the same results.
 
     With the seeding's ``voxels``, the first search starts from a guess: each vertex's voxel's
     representative's nearest centroid (a search of a few points per cluster; the labels are
@@ -616,7 +617,12 @@ def _lloyd_warp(x, moments, centroids, iterations, radius, resolution, device, f
         guess = CentroidSearch(x[voxels.representatives], radius, cell, dims, warp_device)(centroids, spare_threads=1)[voxels.voxel]
     labels = None
     for _ in range(iterations):
-        labels = nearest(centroids, guess if labels is None else labels)
+        previous = labels
+        labels = nearest(centroids, guess if previous is None else previous)
+        if previous is not None and np.array_equal(labels, previous):
+            # A fixed point: the means of these labels are the centroids they were assigned to
+            # (an empty cluster keeps its centroid), so every later iteration repeats both.
+            return centroids, labels
         centroids = cluster_means(moments, labels, centroids)
     if final or labels is None:
         labels = nearest(centroids, guess if labels is None else labels)
@@ -633,7 +639,9 @@ def _lloyd_jax(x, moments, centroids, iterations, device, final):
     for iteration in range(iterations):
         centroids = cluster_means(moments, labels, centroids)
         if final or iteration < iterations - 1:
-            labels = np.asarray(_nearest_jax(points, jax.device_put(centroids, device)))
+            previous, labels = labels, np.asarray(_nearest_jax(points, jax.device_put(centroids, device)))
+            if np.array_equal(labels, previous):
+                break  # a fixed point (see _lloyd_warp)
     return centroids, labels
 
 

@@ -460,6 +460,47 @@ def test_nearest_centroids_with_previous_labels_are_exact(dtype, num_centroids):
         centroids = np.where(np.arange(num_centroids)[:, None] == step, -moved, moved).astype(dtype)
 
 
+@pytest.mark.parametrize("final", [False, True])
+def test_lloyd_stops_at_a_fixed_point_with_the_full_loop_s_result(final, monkeypatch):
+    # Labels that repeat give back the centroids they were assigned to: the Lloyd loops stop
+    # there. Against a plain loop of all the iterations (brute-force nearest, per-cluster means),
+    # whose last assignment is to the final centroids if final, else to those before its means.
+    from geomjax._hash_grid import table_dims
+    from geomjax.remesh import clustering
+    from geomjax.remesh._surface_clusters import VertexMoments
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-1, 1, (3000, 3))
+    mass = rng.uniform(0.5, 1.5, 3000)
+    start = points[rng.choice(3000, 40, replace=False)]
+    iterations = 100
+
+    def nearest(centroids):
+        return np.argmin(np.sum((points[:, None, :] - centroids[None]) ** 2, axis=2), axis=1)
+
+    centroids, labels = start, nearest(start)
+    for iteration in range(iterations):
+        centroids = np.array([np.sum(points[labels == k] * mass[labels == k, None], axis=0) / np.sum(mass[labels == k]) for k in range(40)])
+        if final or iteration < iterations - 1:
+            labels = nearest(centroids)
+
+    calls = []
+    means = clustering.cluster_means
+    monkeypatch.setattr(clustering, "cluster_means", lambda *args: calls.append(1) or means(*args))
+    moments = VertexMoments.of(points, mass)
+    dims = table_dims(points.min(0) - 0.5, points.max(0) + 0.5, 1.0, (32,) * 3)
+    cpu = jax.devices("cpu")[0]
+    for lloyd in (
+        lambda: clustering._lloyd_warp(points, moments, start, iterations, 0.5, 32, cpu, final),
+        lambda: clustering._lloyd_jax(points, moments, start, iterations, cpu, final),
+    ):
+        calls.clear()
+        found, label = lloyd()
+        assert len(calls) < iterations // 2  # it stopped early
+        np.testing.assert_array_equal(label, labels)
+        np.testing.assert_allclose(found, centroids, rtol=1e-12, atol=1e-14)
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_nearest_centroids_break_exact_ties_alike_on_both_backends(dtype):
     # Each point (t, t, t) is, in exact arithmetic, as far from the six permutations of a
