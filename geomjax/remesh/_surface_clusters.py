@@ -211,7 +211,8 @@ def mend_tears(edges: MeshEdges, forest: SeedForest, x, corners, moments: Vertex
             involved = np.zeros(num, bool)
             involved[pairs.reshape(-1)] = True
             split = np.unique(pairs)
-            donors = [c for c in np.argsort(sizes, kind="stable") if seed_of[c] >= 0 and not involved[c]]
+            by_size = np.argsort(sizes, kind="stable")
+            donors = by_size[(seed_of[by_size] >= 0) & ~involved[by_size]]
             distance = forest.distance
             for cluster, donor in zip(split, donors):
                 members = np.flatnonzero(labels == cluster)
