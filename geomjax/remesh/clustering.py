@@ -413,10 +413,12 @@ def remesh_with_sources(
     labels = forest.labels
 
     # 4. A point per cluster on its patch of the source surface, in the input frame.
-    patches = ClusterPatches.of(faces, labels, n_clusters)
-    project = PatchProjector(vertices, faces, patches, backend)
+    # The patches and their search (whose bounding spheres come from a Warp kernel outside the
+    # GIL) are set up on the background thread while the quadrics are summed here.
+    setup = helper.submit(lambda: PatchProjector(vertices, faces, ClusterPatches.of(faces, labels, n_clusters), backend))
     assert plane_terms is not None  # submitted with the edge graph
     quadrics = ClusterQuadrics.of(plane_terms.result(), labels, n_clusters)
+    project = setup.result()
     positions, source_faces, barycentric = project((quadrics.snap(centroids, spacing) * scale + centre).astype(dtype))
 
     # 5. Topology (the relabelled triangles came with the last check of the mending).
