@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._triangulation import corner_angles, half_edges, min_angles, row_cross, row_dot, row_norm, unit_rows
+from ._triangulation import corner_angles, half_edges, min_angles, rotated_corners, row_cross, row_dot, row_norm, unit_rows
 
 __all__ = ["delaunay_flips", "fold_flips"]
 
@@ -88,7 +88,7 @@ def fold_flips(positions: np.ndarray, triangles: np.ndarray, normals: np.ndarray
     pairs = _Pairs.of(triangles, stride)
     u, v, p, q = pairs.u, pairs.v, pairs.p, pairs.q
     # Signed sagittas of the half-edges, as (F, 3) in corner order (edge k runs from corner k).
-    a, b = triangles.reshape(-1), np.roll(triangles, -1, axis=1).reshape(-1)
+    a, b = triangles.reshape(-1), rotated_corners(triangles, 1).reshape(-1)
     sagitta = (row_dot(x[b] - x[a], unit[b] - unit[a]) / 8).reshape(-1, 3)
 
     def height(ab, bc, ca):
@@ -144,7 +144,7 @@ class _Pairs(NamedTuple):
     @classmethod
     def of(cls, triangles: np.ndarray, stride: np.int64) -> _Pairs:
         tail, head, key = half_edges(triangles, int(stride))
-        opposite = np.roll(triangles, -2, axis=1).reshape(-1)
+        opposite = rotated_corners(triangles, 2).reshape(-1)
         order = np.argsort(key, kind="stable")
         sorted_key = key[order]
         starts = np.flatnonzero(np.concatenate([[True], sorted_key[1:] != sorted_key[:-1]]))
