@@ -243,8 +243,9 @@ def relaxation_targets(positions: np.ndarray, triangles: np.ndarray, vertex_rho:
     safe = np.where(normal2 > 0, normal2, 1.0)
     centre = a + (row_cross(normal, ab) * ac2[:, None] + row_cross(ac, normal) * ab2[:, None]) / (2 * safe[:, None])
     # Obtuse at a (bc^2 > ab^2 + ac^2) puts the circumcentre beyond edge bc, and so on.
-    longest = np.argmax(np.stack([bc2 - ab2 - ac2, ac2 - ab2 - bc2, ab2 - ac2 - bc2], axis=1), axis=1)
-    obtuse = np.max(np.stack([bc2 - ab2 - ac2, ac2 - ab2 - bc2, ab2 - ac2 - bc2], axis=1), axis=1) >= 0
+    excess = np.stack([bc2 - ab2 - ac2, ac2 - ab2 - bc2, ab2 - ac2 - bc2], axis=1)
+    longest = np.argmax(excess, axis=1)
+    obtuse = excess[np.arange(a.shape[0]), longest] >= 0
     midpoints = np.stack([(b + c) / 2, (a + c) / 2, (a + b) / 2], axis=1)[np.arange(a.shape[0]), longest]
     centre = np.where(obtuse[:, None], midpoints, centre)
     mass = 0.5 * np.sqrt(normal2)
