@@ -12,7 +12,7 @@ JAX calls then reuse:
   :func:`resolve_conflicts`, :func:`neighbour_lists` and :func:`eliminate`.
 * The clustering remesher's :func:`face_geometry`, :func:`nearest_centroids` and
   :class:`CentroidSearch`, :class:`PatchSearch` with :func:`patch_closest_faces`,
-  :func:`vertex_plane_terms`, and :class:`EdgeGraph` with :func:`grow_forest` (its clusters as
+  :func:`vertex_plane_terms`, :func:`relaxation_sums`, and :class:`EdgeGraph` with :func:`grow_forest` (its clusters as
   a shortest-path forest of the edge graph, updated where the seeds changed), re-exported by
   ``warp_ffi.remesh``.
 
@@ -73,7 +73,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "EdgeGraph", "grow_forest",
+    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "relaxation_sums", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -908,6 +908,88 @@ def vertex_plane_terms(faces: np.ndarray, first_corners: np.ndarray, doubled_nor
     inputs = [_int32_array(faces, device), *floats]
     wp.launch(_vertex_plane_terms_kernel, dim=1, inputs=inputs, outputs=[sums], device=device)
     return sums.numpy()
+
+
+# ---------------------------------------------------------------------------------------------
+# The remesher's relaxation targets.
+
+
+@wp.kernel
+@no_type_check
+def _relaxation_sums_kernel(
+    x: wp.array(dtype=wp.vec3d), triangles: wp.array(dtype=wp.int32), rho: wp.array(dtype=wp.float64),
+    total: wp.array(dtype=wp.float64), sums: wp.array(dtype=wp.vec3d),
+):  # fmt: skip
+    # One thread, triangles and corners in order, each product and sum rounded as in geomjax's
+    # NumPy twin (row by row, left to right; np.bincount over the flattened triangles): the same
+    # bits.
+    zero = wp.float64(0.0)
+    two = wp.float64(2.0)
+    for t in range(triangles.shape[0] // 3):
+        i = triangles[3 * t]
+        j = triangles[3 * t + 1]
+        k = triangles[3 * t + 2]
+        a = x[i]
+        b = x[j]
+        c = x[k]
+        ab = b - a
+        ac = c - a
+        bc = c - b
+        n0 = ab[1] * ac[2] - ab[2] * ac[1]
+        n1 = ab[2] * ac[0] - ab[0] * ac[2]
+        n2 = ab[0] * ac[1] - ab[1] * ac[0]
+        normal2 = (n0 * n0 + n1 * n1) + n2 * n2
+        ab2 = (ab[0] * ab[0] + ab[1] * ab[1]) + ab[2] * ab[2]
+        ac2 = (ac[0] * ac[0] + ac[1] * ac[1]) + ac[2] * ac[2]
+        bc2 = (bc[0] * bc[0] + bc[1] * bc[1]) + bc[2] * bc[2]
+        denominator = two
+        if normal2 > zero:
+            denominator = two * normal2
+        # Circumcentre: a + ((n x ab) |ac|^2 + (ac x n) |ab|^2) / (2 |n|^2).
+        centre = wp.vec3d(
+            a[0] + ((n1 * ab[2] - n2 * ab[1]) * ac2 + (ac[1] * n2 - ac[2] * n1) * ab2) / denominator,
+            a[1] + ((n2 * ab[0] - n0 * ab[2]) * ac2 + (ac[2] * n0 - ac[0] * n2) * ab2) / denominator,
+            a[2] + ((n0 * ab[1] - n1 * ab[0]) * ac2 + (ac[0] * n1 - ac[1] * n0) * ab2) / denominator,
+        )
+        # Obtuse (the largest excess, the first of equals, not negative): the longest edge's midpoint.
+        excess = (bc2 - ab2) - ac2
+        midpoint = wp.vec3d((b[0] + c[0]) / two, (b[1] + c[1]) / two, (b[2] + c[2]) / two)
+        if (ac2 - ab2) - bc2 > excess:
+            excess = (ac2 - ab2) - bc2
+            midpoint = wp.vec3d((a[0] + c[0]) / two, (a[1] + c[1]) / two, (a[2] + c[2]) / two)
+        if (ab2 - ac2) - bc2 > excess:
+            excess = (ab2 - ac2) - bc2
+            midpoint = wp.vec3d((a[0] + b[0]) / two, (a[1] + b[1]) / two, (a[2] + b[2]) / two)
+        if excess >= zero:
+            centre = midpoint
+        mass = wp.float64(0.5) * wp.sqrt(normal2)
+        if rho.shape[0] > 0:
+            mass = mass * (((rho[i] + rho[j]) + rho[k]) / wp.float64(3.0))
+        weighted = wp.vec3d(mass * centre[0], mass * centre[1], mass * centre[2])
+        for corner in range(3):
+            v = triangles[3 * t + corner]
+            total[v] = total[v] + mass
+            sums[v] = sums[v] + weighted
+
+
+def relaxation_sums(x: np.ndarray, triangles: np.ndarray, rho: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(V,)`` and ``(V, 3)`` float64: per vertex of ``x`` ``(V, 3)`` (float64), the masses of
+    the ``triangles`` ``(T, 3)`` around it and their mass-weighted circumcentres (for obtuse
+    triangles the longest edge's midpoint), summed: geomjax's remesher's relaxation sums
+    (``geomjax.remesh._triangulation.relaxation_targets``; a triangle's mass is its area, times
+    the mean of ``rho`` ``(V,)`` at its corners if given). One sequential CPU kernel; the same
+    bits as the NumPy twin."""
+    device = "cpu"
+    total, sums = np.zeros(x.shape[0]), np.zeros((x.shape[0], 3))
+    inputs = [
+        _host_view(np.ascontiguousarray(x, np.float64), wp.vec3d, device),
+        _host_view(np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32, device),
+        _host_view(np.zeros(0) if rho is None else np.ascontiguousarray(rho, np.float64), wp.float64, device),
+    ]
+    # The kernel adds into the NumPy arrays themselves.
+    outputs = [_host_view(total, wp.float64, device), _host_view(sums, wp.vec3d, device)]
+    wp.launch(_relaxation_sums_kernel, dim=1, inputs=inputs, outputs=outputs, device=device)
+    return total, sums
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """The clustering remesher's host-side kernels: the faces' corners, normals and areas, nearest
 centroids on a Warp hash grid, the nearest face of each point among its cluster's faces, the
-plane quadric terms summed into the vertices, and the clusters as a shortest-path forest of the
-edge graph.
+plane quadric terms summed into the vertices, the relaxation's circumcentre sums, and the
+clusters as a shortest-path forest of the edge graph.
 
 Host-side NumPy functions; they live in :mod:`warp_ffi.host` with the other host-side entry
 points and are re-exported here under the names geomjax imports.
@@ -14,4 +14,5 @@ from .host import face_geometry as face_geometry
 from .host import grow_forest as grow_forest
 from .host import nearest_centroids as nearest_centroids
 from .host import patch_closest_faces as patch_closest_faces
+from .host import relaxation_sums as relaxation_sums
 from .host import vertex_plane_terms as vertex_plane_terms

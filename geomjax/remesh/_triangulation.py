@@ -1,7 +1,8 @@
 """Triangle-set operations of the remesher: relabelled triangles, clean-up, relaxation and
 measures (the edge flips are in ``_flips``).
 
-Host NumPy, shared by both backends of :func:`geomjax.remeshing`. Triangles are ``(F, 3)``
+Host NumPy, shared by both backends of :func:`geomjax.remeshing` (with warp-lang installed,
+the relaxation's sums come from a Warp kernel with the same bits). Triangles are ``(F, 3)``
 integer arrays of vertex indices, positions ``(V, 3)`` arrays; an edge is keyed
 ``min * stride + max`` with ``stride`` above every vertex index.
 """
@@ -9,6 +10,8 @@ integer arrays of vertex indices, positions ``(V, 3)`` arrays; an edge is keyed
 from __future__ import annotations
 
 import numpy as np
+
+from .._dispatch import warp_available
 
 __all__ = [
     "bending_density",
@@ -232,9 +235,25 @@ def relaxation_targets(positions: np.ndarray, triangles: np.ndarray, vertex_rho:
     A triangle's mass is its area (times its mean density). The circumcentre of an obtuse
     triangle, which can lie far outside it, is replaced by the midpoint of its longest edge (the
     closest point of the triangle to it). ``fixed`` vertices (on a boundary) and vertices in no
-    triangle stay where they are.
+    triangle stay where they are. With warp-lang the sums come from a kernel
+    (``warp_ffi.remesh.relaxation_sums``: the same roundings in the same order, the same bits).
     """
     x = positions.astype(np.float64)
+    if warp_available():
+        from warp_ffi.remesh import relaxation_sums
+
+        total, sums = relaxation_sums(x, triangles, vertex_rho)
+    else:
+        total, sums = _relaxation_sums(x, triangles, vertex_rho)
+    move = (total > 0) & ~fixed
+    out = x.copy()
+    out[move] = sums[move] / total[move, None]
+    return out
+
+
+def _relaxation_sums(x: np.ndarray, triangles: np.ndarray, vertex_rho: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex, the masses of its triangles ``(V,)`` and their mass-weighted circumcentres
+    ``(V, 3)``, summed (the NumPy twin of ``warp_ffi.remesh.relaxation_sums``)."""
     a, b, c = (x[triangles[:, k]] for k in range(3))
     ab, ac = b - a, c - a
     normal = row_cross(ab, ac)
@@ -250,15 +269,13 @@ def relaxation_targets(positions: np.ndarray, triangles: np.ndarray, vertex_rho:
     centre = np.where(obtuse[:, None], midpoints, centre)
     mass = 0.5 * np.sqrt(normal2)
     if vertex_rho is not None:
-        mass = mass * vertex_rho[triangles].mean(axis=1)
+        corner_rho = vertex_rho.astype(np.float64, copy=False)[triangles]
+        mass = mass * ((corner_rho[:, 0] + corner_rho[:, 1] + corner_rho[:, 2]) / 3)
     num = x.shape[0]
     corners = triangles.reshape(-1)
     total = np.bincount(corners, weights=np.repeat(mass, 3), minlength=num)
     sums = np.stack([np.bincount(corners, weights=np.repeat(mass * centre[:, k], 3), minlength=num) for k in range(3)], axis=1)
-    move = (total > 0) & ~fixed
-    out = x.copy()
-    out[move] = sums[move] / total[move, None]
-    return out
+    return total, sums
 
 
 def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -6,7 +6,7 @@ import numpy as np
 from benchmarks import _quality as quality
 from geomjax import icosphere
 from geomjax.remesh._flips import fold_flips
-from geomjax.remesh._triangulation import MIN_ANGLE_DEGREES, bending_density, boundary_vertices, relocate_poor_corners, topology
+from geomjax.remesh._triangulation import MIN_ANGLE_DEGREES, bending_density, boundary_vertices, relaxation_targets, relocate_poor_corners, topology
 
 
 def _grid(n):
@@ -61,6 +61,48 @@ def test_corners_that_cannot_move_stay():
 
     moved, _, _ = relocate_poor_corners(surface, faces, boundary_vertices(faces, len(points)), pinned)
     assert np.array_equal(moved, points)
+
+
+def test_relaxation_targets_are_mass_weighted_circumcentres(monkeypatch):
+    # A jittered icosphere (some obtuse triangles) and one vertex in no triangle: each free
+    # vertex goes to the area- (times mean density-) weighted mean of its triangles'
+    # circumcentres, an obtuse triangle's replaced by its longest edge's midpoint; each
+    # circumcentre solved for here as the point of the triangle's plane equidistant from its
+    # corners. The Warp kernel and the NumPy twin give the same bits.
+    sphere = icosphere(2)
+    rng = np.random.default_rng(4)
+    points = np.asarray(sphere.points, np.float64) * rng.uniform(0.9, 1.1, (len(sphere.points), 1)) + rng.normal(0, 0.03, (len(sphere.points), 3))
+    points = np.concatenate([points, [[5.0, 5.0, 5.0]]])
+    faces = np.asarray(sphere.cells, np.int32)
+    fixed = np.zeros(len(points), bool)
+    fixed[[0, 7]] = True
+    rho = rng.uniform(0.5, 2.0, len(points))
+    for density in (None, rho):
+        expected_sum, expected_mass = np.zeros((len(points), 3)), np.zeros(len(points))
+        obtuse_count = 0
+        for face in faces:
+            a, b, c = points[face]
+            ab, ac = b - a, c - a
+            st = np.linalg.solve([[ab @ ab, ab @ ac], [ab @ ac, ac @ ac]], [ab @ ab / 2, ac @ ac / 2])
+            centre = a + st[0] * ab + st[1] * ac
+            edges = [(b, c), (a, c), (a, b)]
+            lengths = [np.sum((q - p) ** 2) for p, q in edges]
+            longest = int(np.argmax(lengths))
+            if lengths[longest] >= sum(lengths) - lengths[longest]:
+                obtuse_count += 1
+                centre = (edges[longest][0] + edges[longest][1]) / 2
+            mass = np.linalg.norm(np.cross(ab, ac)) / 2 * (1.0 if density is None else density[face].mean())
+            expected_sum[face] += mass * centre
+            expected_mass[face] += mass
+        expected = points.copy()
+        free = (expected_mass > 0) & ~fixed
+        expected[free] = expected_sum[free] / expected_mass[free, None]
+        assert obtuse_count > 0 and not free[-1]
+        targets = relaxation_targets(points, faces, density, fixed)
+        np.testing.assert_allclose(targets, expected, rtol=1e-12, atol=1e-12)
+        with monkeypatch.context() as patch:
+            patch.setattr("geomjax.remesh._triangulation.warp_available", lambda: False)
+            np.testing.assert_array_equal(relaxation_targets(points, faces, density, fixed), targets)
 
 
 def test_bending_density_follows_the_arc_heights_over_the_edges():
