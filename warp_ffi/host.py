@@ -12,7 +12,7 @@ JAX calls then reuse:
   :func:`resolve_conflicts`, :func:`neighbour_lists` and :func:`eliminate`.
 * The clustering remesher's :func:`face_geometry`, :func:`nearest_centroids` and
   :class:`CentroidSearch`, :class:`PatchSearch` with :func:`patch_closest_faces`,
-  :func:`vertex_plane_terms`, :func:`relaxation_sums`, and :class:`EdgeGraph` with :func:`grow_forest` (its clusters as
+  :func:`vertex_plane_terms`, :func:`largest_sagittas` and :func:`relaxation_sums`, and :class:`EdgeGraph` with :func:`grow_forest` (its clusters as
   a shortest-path forest of the edge graph, updated where the seeds changed), re-exported by
   ``warp_ffi.remesh``.
 
@@ -73,7 +73,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "relaxation_sums", "EdgeGraph", "grow_forest",
+    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -970,6 +970,43 @@ def _relaxation_sums_kernel(
             v = triangles[3 * t + corner]
             total[v] = total[v] + mass
             sums[v] = sums[v] + weighted
+
+
+@wp.kernel
+@no_type_check
+def _largest_sagittas_kernel(
+    x: wp.array(dtype=wp.vec3d), unit: wp.array(dtype=wp.vec3d), triangles: wp.array(dtype=wp.int32),
+    largest: wp.array(dtype=wp.float64), used: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    # One launch on the CPU runs the threads in sequence: plain read-modify-writes are safe.
+    t = wp.tid()
+    for corner in range(3):
+        tail = triangles[3 * t + corner]
+        head = triangles[3 * t + (corner + 1) % 3]
+        chord = x[head] - x[tail]
+        turn = unit[head] - unit[tail]
+        sagitta = wp.abs((chord[0] * turn[0] + chord[1] * turn[1]) + chord[2] * turn[2]) / wp.float64(8.0)
+        largest[tail] = wp.max(largest[tail], sagitta)
+        largest[head] = wp.max(largest[head], sagitta)
+        used[tail] = 1
+
+
+def largest_sagittas(x: np.ndarray, unit: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(V,)`` float64 and bool: per vertex of ``x`` ``(V, 3)`` (float64), the largest sagitta
+    estimate ``|(b - a) . (n_b - n_a)| / 8`` of its edges in ``triangles`` ``(T, 3)`` (``unit``
+    ``(V, 3)``: unit normals), and whether a triangle uses it: geomjax's remesher's bending
+    density (``geomjax.remesh._triangulation.bending_density``), the same bits as its NumPy twin."""
+    device = "cpu"
+    largest, used = np.zeros(x.shape[0]), np.zeros(x.shape[0], np.int32)
+    inputs = [
+        _host_view(np.ascontiguousarray(x, np.float64), wp.vec3d, device),
+        _host_view(np.ascontiguousarray(unit, np.float64), wp.vec3d, device),
+        _host_view(np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32, device),
+    ]
+    # The kernel writes into the NumPy arrays themselves.
+    outputs = [_host_view(largest, wp.float64, device), _host_view(used, wp.int32, device)]
+    wp.launch(_largest_sagittas_kernel, dim=triangles.shape[0], inputs=inputs, outputs=outputs, device=device)
+    return largest, used.astype(bool)
 
 
 def relaxation_sums(x: np.ndarray, triangles: np.ndarray, rho: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

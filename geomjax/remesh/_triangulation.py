@@ -2,7 +2,7 @@
 measures (the edge flips are in ``_flips``).
 
 Host NumPy, shared by both backends of :func:`geomjax.remeshing` (with warp-lang installed,
-the relaxation's sums come from a Warp kernel with the same bits). Triangles are ``(F, 3)``
+the relaxation's bending measure and sums come from Warp kernels with the same bits). Triangles are ``(F, 3)``
 integer arrays of vertex indices, positions ``(V, 3)`` arrays; an edge is keyed
 ``min * stride + max`` with ``stride`` above every vertex index.
 """
@@ -214,17 +214,24 @@ def bending_density(positions: np.ndarray, triangles: np.ndarray, normals: np.nd
     (the height of an arc through ``a`` and ``b`` with unit normals ``n_a``, ``n_b`` over its
     chord, exact to second order on a circle); ``normals`` ``(V, 3)`` are surface normals at the
     vertices, of any length. The mean is over the vertices of ``triangles``; a flat surface has
-    density 1 everywhere.
+    density 1 everywhere. With warp-lang the largest sagittas come from a kernel
+    (``warp_ffi.remesh.largest_sagittas``, the same bits).
     """
     x = positions.astype(np.float64)
     unit = unit_rows(normals.astype(np.float64))
-    tail, head = triangles.reshape(-1), rotated_corners(triangles, 1).reshape(-1)
-    sagitta = np.abs(row_dot(x[head] - x[tail], unit[head] - unit[tail])) / 8
-    largest = np.zeros(x.shape[0])
-    np.maximum.at(largest, tail, sagitta)
-    np.maximum.at(largest, head, sagitta)
-    # The vertices the triangles use, ascending (a mask: no sort).
-    mean = largest[np.bincount(triangles.reshape(-1), minlength=x.shape[0]) > 0].mean()
+    if warp_available():
+        from warp_ffi.remesh import largest_sagittas
+
+        largest, used = largest_sagittas(x, unit, triangles)
+    else:
+        tail, head = triangles.reshape(-1), rotated_corners(triangles, 1).reshape(-1)
+        sagitta = np.abs(row_dot(x[head] - x[tail], unit[head] - unit[tail])) / 8
+        largest = np.zeros(x.shape[0])
+        np.maximum.at(largest, tail, sagitta)
+        np.maximum.at(largest, head, sagitta)
+        # The vertices the triangles use (a mask: no sort).
+        used = np.bincount(triangles.reshape(-1), minlength=x.shape[0]) > 0
+    mean = largest[used].mean()
     return 1 + (largest / mean) ** 2 if mean > 0 else np.ones(x.shape[0])
 
 

@@ -105,7 +105,7 @@ def test_relaxation_targets_are_mass_weighted_circumcentres(monkeypatch):
             np.testing.assert_array_equal(relaxation_targets(points, faces, density, fixed), targets)
 
 
-def test_bending_density_follows_the_arc_heights_over_the_edges():
+def test_bending_density_follows_the_arc_heights_over_the_edges(monkeypatch):
     # On a sphere of radius R a chord of length L stands R - sqrt(R^2 - L^2 / 4) below its arc;
     # with the exact normals the estimate is L^2 / (8 R), the same to relative order (L / R)^2.
     sphere = icosphere(2)
@@ -120,6 +120,11 @@ def test_bending_density_follows_the_arc_heights_over_the_edges():
     assert np.ptp(expected) > 0.1  # the icosphere's edges differ in length
     density = bending_density(points, faces, 5.0 * points)  # normals of any length
     np.testing.assert_allclose(density, expected, rtol=2 * (chord.max() / radius) ** 2)
+    # The Warp kernel's largest sagittas and the NumPy twin's: the same bits (jittered: no ties).
+    jittered = points + np.random.default_rng(1).normal(0, 0.05, points.shape)
+    density = bending_density(jittered, faces, jittered)
+    monkeypatch.setattr("geomjax.remesh._triangulation.warp_available", lambda: False)
+    np.testing.assert_array_equal(bending_density(jittered, faces, jittered), density)
 
 
 def test_bending_density_ignores_flat_directions():
