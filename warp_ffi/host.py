@@ -12,7 +12,8 @@ JAX calls then reuse:
   :func:`resolve_conflicts`, :func:`neighbour_lists` and :func:`eliminate`.
 * The clustering remesher's :func:`face_geometry`, :func:`nearest_centroids` and
   :class:`CentroidSearch`, :class:`PatchSearch` with :func:`patch_closest_faces`,
-  :func:`vertex_plane_terms`, :func:`largest_sagittas` and :func:`relaxation_sums`, and :class:`EdgeGraph` with :func:`grow_forest` (its clusters as
+  :func:`vertex_plane_terms`, :func:`largest_sagittas`, :func:`relaxation_sums` and
+  :func:`overturned_vertices`, and :class:`EdgeGraph` with :func:`grow_forest` (its clusters as
   a shortest-path forest of the edge graph, updated where the seeds changed), re-exported by
   ``warp_ffi.remesh``.
 
@@ -73,7 +74,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "EdgeGraph", "grow_forest",
+    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "overturned_vertices", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -989,6 +990,47 @@ def _largest_sagittas_kernel(
         largest[tail] = wp.max(largest[tail], sagitta)
         largest[head] = wp.max(largest[head], sagitta)
         used[tail] = 1
+
+
+@wp.func
+@no_type_check
+def _doubled_normal(x: wp.array(dtype=wp.vec3d), i: wp.int32, j: wp.int32, k: wp.int32):
+    """``(x_j - x_i) x (x_k - x_i)``, rounded as the NumPy twin's row_cross."""
+    u = x[j] - x[i]
+    v = x[k] - x[i]
+    return wp.vec3d(u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+
+
+@wp.kernel
+@no_type_check
+def _overturned_kernel(before: wp.array(dtype=wp.vec3d), after: wp.array(dtype=wp.vec3d), triangles: wp.array(dtype=wp.int32), turned: wp.array(dtype=wp.int32)):
+    # (Parameters are C++ names: not "new".)
+    t = wp.tid()
+    i = triangles[3 * t]
+    j = triangles[3 * t + 1]
+    k = triangles[3 * t + 2]
+    a = _doubled_normal(before, i, j, k)
+    b = _doubled_normal(after, i, j, k)
+    if (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2] <= wp.float64(0.0):
+        turned[i] = 1
+        turned[j] = 1
+        turned[k] = 1
+
+
+def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``(V,)`` bool: the corners of the ``triangles`` ``(T, 3)`` whose normal turns by 90 degrees
+    or more from positions ``old`` to ``new`` ``(V, 3)`` (float64): geomjax's remesher's check of a
+    relaxation step (``geomjax.remesh._triangulation.overturned_vertices``), the same answer as
+    its NumPy twin (the same roundings)."""
+    device = "cpu"
+    turned = np.zeros(old.shape[0], np.int32)
+    inputs = [
+        _host_view(np.ascontiguousarray(old, np.float64), wp.vec3d, device),
+        _host_view(np.ascontiguousarray(new, np.float64), wp.vec3d, device),
+        _host_view(np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32, device),
+    ]
+    wp.launch(_overturned_kernel, dim=triangles.shape[0], inputs=inputs, outputs=[_host_view(turned, wp.int32, device)], device=device)
+    return turned.astype(bool)
 
 
 def largest_sagittas(x: np.ndarray, unit: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

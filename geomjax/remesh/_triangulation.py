@@ -2,7 +2,7 @@
 measures (the edge flips are in ``_flips``).
 
 Host NumPy, shared by both backends of :func:`geomjax.remeshing` (with warp-lang installed,
-the relaxation's bending measure and sums come from Warp kernels with the same bits). Triangles are ``(F, 3)``
+the relaxation's bending measure, sums and fold check come from Warp kernels with the same bits). Triangles are ``(F, 3)``
 integer arrays of vertex indices, positions ``(V, 3)`` arrays; an edge is keyed
 ``min * stride + max`` with ``stride`` above every vertex index.
 """
@@ -286,7 +286,12 @@ def _relaxation_sums(x: np.ndarray, triangles: np.ndarray, vertex_rho: np.ndarra
 
 
 def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """``(V,)`` bool: vertices of triangles whose normal turns by more than 90 degrees."""
+    """``(V,)`` bool: vertices of triangles whose normal turns by 90 degrees or more (with
+    warp-lang from a kernel, ``warp_ffi.remesh.overturned_vertices``: the same answer)."""
+    if warp_available():
+        from warp_ffi.remesh import overturned_vertices as kernel
+
+        return kernel(old.astype(np.float64), new.astype(np.float64), triangles)
 
     def normals(x):
         return row_cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])

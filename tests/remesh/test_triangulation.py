@@ -6,7 +6,15 @@ import numpy as np
 from benchmarks import _quality as quality
 from geomjax import icosphere
 from geomjax.remesh._flips import fold_flips
-from geomjax.remesh._triangulation import MIN_ANGLE_DEGREES, bending_density, boundary_vertices, relaxation_targets, relocate_poor_corners, topology
+from geomjax.remesh._triangulation import (
+    MIN_ANGLE_DEGREES,
+    bending_density,
+    boundary_vertices,
+    overturned_vertices,
+    relaxation_targets,
+    relocate_poor_corners,
+    topology,
+)
 
 
 def _grid(n):
@@ -61,6 +69,23 @@ def test_corners_that_cannot_move_stay():
 
     moved, _, _ = relocate_poor_corners(surface, faces, boundary_vertices(faces, len(points)), pinned)
     assert np.array_equal(moved, points)
+
+
+def test_overturned_vertices_are_the_corners_of_flipped_triangles(monkeypatch):
+    # A grid whose vertex 12 moves past its neighbours: the triangles around it turn over (their
+    # normals' z changes sign), and their corners are flagged; a small move flags nothing.
+    points, faces = _grid(5)
+    for step, expect_some in ((np.array([0.2, 0.1, 0.0]), False), (np.array([2.5, 1.5, 0.0]), True)):
+        moved = points.copy()
+        moved[12] += step
+        flipped = _normals_z(points, faces) * _normals_z(moved, faces) <= 0
+        expected = np.zeros(len(points), bool)
+        expected[faces[flipped].reshape(-1)] = True
+        assert expected.any() == expect_some
+        np.testing.assert_array_equal(overturned_vertices(points, moved, faces), expected)
+        with monkeypatch.context() as patch:
+            patch.setattr("geomjax.remesh._triangulation.warp_available", lambda: False)
+            np.testing.assert_array_equal(overturned_vertices(points, moved, faces), expected)
 
 
 def test_relaxation_targets_are_mass_weighted_circumcentres(monkeypatch):
