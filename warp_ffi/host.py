@@ -912,7 +912,8 @@ def vertex_plane_terms(faces: np.ndarray, first_corners: np.ndarray, doubled_nor
 
 
 # ---------------------------------------------------------------------------------------------
-# The remesher's relaxation targets.
+# The remesher's relaxation rounds: the bending measure, the circumcentre sums and the check for
+# overturned triangles (sequential launches: the NumPy twins' roundings in their order).
 
 
 @wp.kernel
@@ -1003,7 +1004,9 @@ def _doubled_normal(x: wp.array(dtype=wp.vec3d), i: wp.int32, j: wp.int32, k: wp
 
 @wp.kernel
 @no_type_check
-def _overturned_kernel(before: wp.array(dtype=wp.vec3d), after: wp.array(dtype=wp.vec3d), triangles: wp.array(dtype=wp.int32), turned: wp.array(dtype=wp.int32)):
+def _overturned_kernel(
+    before: wp.array(dtype=wp.vec3d), after: wp.array(dtype=wp.vec3d), triangles: wp.array(dtype=wp.int32), turned: wp.array(dtype=wp.int32)
+):
     # (Parameters are C++ names: not "new".)
     t = wp.tid()
     i = triangles[3 * t]
