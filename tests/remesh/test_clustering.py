@@ -80,6 +80,31 @@ def test_parity_and_determinism(threshold):
     np.testing.assert_array_equal(again.faces, warp_out.faces)
 
 
+def test_the_background_thread_changes_nothing(monkeypatch):
+    # Below BACKGROUND_MIN_VERTICES the edge graph, plane terms and patch search run on the
+    # calling thread; forced onto the background thread, every output is the same to the bit,
+    # and an error raised there still reaches the caller.
+    from geomjax.remesh import clustering
+
+    vertices, faces = _jittered_sphere()
+    assert vertices.shape[0] < clustering.BACKGROUND_MIN_VERTICES
+    inline = remesh_with_sources(vertices, faces, 120)
+    monkeypatch.setattr(clustering, "BACKGROUND_MIN_VERTICES", 0)
+    threaded = remesh_with_sources(vertices, faces, 120)
+    for a, b in zip(inline, threaded):
+        np.testing.assert_array_equal(a, b)
+
+    def broken(*args):
+        raise RuntimeError("edge graph failed")
+
+    monkeypatch.setattr(clustering.MeshEdges, "of", broken)
+    with pytest.raises(RuntimeError, match="edge graph failed"):
+        remesh_with_sources(vertices, faces, 120)
+    monkeypatch.setattr(clustering, "BACKGROUND_MIN_VERTICES", 10**9)
+    with pytest.raises(RuntimeError, match="edge graph failed"):
+        remesh_with_sources(vertices, faces, 120)
+
+
 def test_source_faces_and_weights_rebuild_the_vertices():
     vertices, faces = _jittered_sphere()
     result = remesh_with_sources(vertices, faces, 80)
