@@ -71,6 +71,36 @@ def test_corners_that_cannot_move_stay():
     assert np.array_equal(moved, points)
 
 
+def test_flip_rules_on_a_grid():
+    # Every interior edge of a grid (one vertex pulled across a diagonal, so that some flips
+    # would fold): flippable where the other diagonal is not an edge yet, both ends keep more
+    # than three edges and both new triangles face up (+z, like the grid's), checked edge by edge.
+    from geomjax.remesh._flips import _Pairs
+
+    points, faces = _grid(5)
+    points[12] += [0.9, 0.9, 0.0]
+    # A triangle off the grid on the other diagonal of the quad around edge 6-12 (vertices 7
+    # and 11): that flip would duplicate an edge.
+    points = np.concatenate([points, [[2.0, 2.0, 1.0]]])
+    faces = np.concatenate([faces, [[7, 11, 25]]]).astype(np.int32)
+    stride = np.int64(len(points))
+    pairs = _Pairs.of(faces, stride)
+    edges = {tuple(sorted(edge)) for face in faces.tolist() for edge in zip(face, face[1:] + face[:1])}
+    degree = np.zeros(len(points), int)
+    for a, b in edges:
+        degree[[a, b]] += 1
+    expected = np.array(
+        [
+            tuple(sorted((p, q))) not in edges and degree[u] > 3 and degree[v] > 3 and _normals_z(points, np.array([[u, q, p], [q, v, p]])).min() > 0
+            for u, v, p, q in zip(pairs.u, pairs.v, pairs.p, pairs.q)
+        ]
+    )
+    assert expected.any() and not expected.all()
+    duplicating = [(min(p, q), max(p, q)) in edges and degree[u] > 3 and degree[v] > 3 for u, v, p, q in zip(pairs.u, pairs.v, pairs.p, pairs.q)]
+    assert any(duplicating)
+    np.testing.assert_array_equal(pairs.flippable(points, stride), expected)
+
+
 def test_overturned_vertices_are_the_corners_of_flipped_triangles(monkeypatch):
     # A grid whose vertex 12 moves past its neighbours: the triangles around it turn over (their
     # normals' z changes sign), and their corners are flagged; a small move flags nothing.
