@@ -1022,9 +1022,9 @@ def _overturned_kernel(
 
 def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """``(V,)`` bool: the corners of the ``triangles`` ``(T, 3)`` whose normal turns by 90 degrees
-    or more from positions ``old`` to ``new`` ``(V, 3)`` (float64): geomjax's remesher's check of a
-    relaxation step (``geomjax.remesh._triangulation.overturned_vertices``), the same answer as
-    its NumPy twin (the same roundings)."""
+    or more from positions ``old`` to ``new`` ``(V, 3)`` (measured in float64): geomjax's
+    remesher's check of a relaxation step (``geomjax.remesh._triangulation.overturned_vertices``),
+    the same answer as its NumPy twin (the same roundings)."""
     device = "cpu"
     turned = np.zeros(old.shape[0], np.int32)
     inputs = [

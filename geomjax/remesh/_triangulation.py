@@ -291,7 +291,7 @@ def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray)
     if warp_available():
         from warp_ffi.remesh import overturned_vertices as kernel
 
-        return kernel(old.astype(np.float64), new.astype(np.float64), triangles)
+        return kernel(old, new, triangles)
 
     def normals(x):
         return row_cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
