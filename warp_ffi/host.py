@@ -65,7 +65,7 @@ import numpy as np
 
 from ._grid import mesh_words
 from ._obb_tree import TREE_ARRAYS, build_tree
-from ._wrap import WARP_SCALAR, Overloads, launch_in_chunks, scalars, vectors
+from ._wrap import WARP_SCALAR, Overloads, launch_in_chunks, launch_on_host, scalars, vectors
 from ._wrap import warp as wp
 from .closest import triangle_distance_sq
 
@@ -88,6 +88,36 @@ def _host_view(values: np.ndarray, dtype, device: str) -> wp.array:
     their memory itself, not a copy (a copy costs 10 us even for a few hundred rows; the array
     holds a reference to ``values``), on another device a copy."""
     return wp.array(values, dtype=dtype, device=device, copy=not wp.get_device(device).is_cpu)
+
+
+class _HostArguments:
+    """Kernel arguments made from host data, for launches on ``device``: on the CPU the NumPy
+    arrays themselves, as ``(values, dtype)`` pairs (launches replayed by
+    ``warp_ffi._wrap.launch_in_chunks`` and ``launch_on_host``), elsewhere ``wp.array`` copies."""
+
+    def __init__(self, device: str):
+        self.device = device
+        self.on_cpu = wp.get_device(device).is_cpu
+
+    def array(self, values: np.ndarray, dtype) -> Any:
+        """An argument of C-contiguous ``values`` of Warp type ``dtype`` (one row per element)."""
+        return (values, dtype) if self.on_cpu else wp.array(values, dtype=dtype, device=self.device)
+
+    def empty(self, size: int, dtype) -> Any:
+        """An output of ``size`` elements of the Warp scalar ``dtype``."""
+        return (np.empty(size, wp.dtype_to_numpy(dtype)), dtype) if self.on_cpu else wp.empty(size, dtype=dtype, device=self.device)
+
+    def launch(self, kernel, dim, args: list) -> None:
+        """One launch of ``kernel`` over ``dim`` with these arguments."""
+        if self.on_cpu:
+            launch_on_host(kernel, dim, args)
+        else:
+            wp.launch(kernel, dim=dim, inputs=args, device=self.device)
+
+    @staticmethod
+    def values(argument) -> np.ndarray:
+        """The host values of an argument (of a ``wp.array``, a copy)."""
+        return argument[0] if isinstance(argument, tuple) else argument.numpy()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -594,14 +624,16 @@ class CentroidSearch:
         scalar = WARP_SCALAR[self.dtype]
         self.vec = wp.vec3d if scalar == wp.float64 else wp.vec3f  # the types wp.HashGrid accepts
         self.device, self.cell_width, self.dims = device, cell_width, dims
-        self.points: wp.array = wp.array(points, dtype=self.vec, device=device)
+        self.arguments = _HostArguments(device)
+        self.num_points = points.shape[0]
+        self.points = self.arguments.array(np.ascontiguousarray(points, self.dtype), self.vec)
         inner = radius * INNER_RADIUS_FRACTION
         slack = NEIGHBOUR_SLACK_EPSILONS * np.finfo(self.dtype).eps
         params = np.array([inner, inner * ACCEPT_MARGIN, radius, radius * ACCEPT_MARGIN, slack], self.dtype)
-        self.params: wp.array = wp.array(params, dtype=scalar, device=device)
-        # The last call's labels, as returned and on the device: passed back as ``previous``,
-        # they need no copy.
-        self._last: tuple[np.ndarray, wp.array] | None = None
+        self.params = self.arguments.array(params, scalar)
+        # The last call's labels, as returned and as the kernels' argument: passed back as
+        # ``previous``, they need no copy.
+        self._last: tuple[np.ndarray, Any] | None = None
 
     def __call__(self, centroids: np.ndarray, previous: np.ndarray | None = None, spare_threads: int = 0) -> np.ndarray:
         """``(N,)`` int32: the nearest of ``centroids`` ``(K, 3)`` to each point (ties: lowest index).
@@ -612,41 +644,44 @@ class CentroidSearch:
         the previous one); the result is the same without. ``spare_threads``: as for
         ``launch_in_chunks``.
         """
-        device, scalar = self.device, WARP_SCALAR[self.dtype]
-        num_points = self.points.shape[0]
-        centroids_wp: wp.array = _host_view(np.ascontiguousarray(centroids, self.dtype), self.vec, device)
-        labels = wp.empty(num_points, dtype=wp.int32, device=device)
+        device, scalar, arguments = self.device, WARP_SCALAR[self.dtype], self.arguments
+        num_points = self.num_points
+        centroids = np.ascontiguousarray(centroids, self.dtype)
+        # The hash grid is built over a wp.array (on the CPU, of the centroids' memory).
+        centroids_wp: wp.array = _host_view(centroids, self.vec, device)
+        centroids_arg = (centroids, self.vec) if arguments.on_cpu else centroids_wp
+        labels = arguments.empty(num_points, wp.int32)
         if previous is None:
-            previous_wp = wp.empty(0, dtype=wp.int32, device=device)
+            previous_arg = arguments.empty(0, wp.int32)
         elif self._last is not None and previous is self._last[0]:
-            previous_wp = self._last[1]
+            previous_arg = self._last[1]
         else:
-            previous_wp = _int32_array(previous, device)
+            previous_arg = arguments.array(np.ascontiguousarray(previous, np.int32), wp.int32)
         num = centroids.shape[0]
         with_lists = previous is not None and num_points >= NEIGHBOUR_LIST_MIN_POINTS * num
         # Unused inputs are empty arrays (the kernels read their sizes).
-        gaps = wp.zeros(num if previous is not None and not with_lists else 0, dtype=scalar, device=device)
+        num_gaps = num if previous is not None and not with_lists else 0
+        gaps = arguments.array(np.zeros(num_gaps, self.dtype), scalar)
         with GRID_LOCK:
             grid = hash_grid(centroids_wp, self.cell_width, self.dims)
             if with_lists:
-                counts = wp.empty(num, dtype=wp.int32, device=device)
-                unlisted = [wp.empty(0, dtype=wp.int32, device=device), wp.empty(0, dtype=scalar, device=device)]
+                counts = arguments.empty(num, wp.int32)
+                unlisted = [arguments.empty(0, wp.int32), arguments.empty(0, scalar)]
                 lists = functools.partial(launch_in_chunks, _centroid_neighbours(self.dtype), 1, num, min_chunk=LIST_MIN_CHUNK, spare_threads=spare_threads)
                 # Count (no offsets: nothing listed), then list from the counts' running sums.
-                lists([grid.id, centroids_wp, self.params, unlisted[0]], [counts, *unlisted])
+                lists([grid.id, centroids_arg, self.params, unlisted[0]], [counts, *unlisted])
                 offsets = np.zeros(num + 1, np.int32)
-                np.cumsum(counts.numpy(), out=offsets[1:])
-                offsets_wp = _int32_array(offsets, device)
-                neighbours = wp.empty(int(offsets[-1]), dtype=wp.int32, device=device)
-                distances = wp.empty(int(offsets[-1]), dtype=scalar, device=device)
-                lists([grid.id, centroids_wp, self.params, offsets_wp], [counts, neighbours, distances])
+                np.cumsum(arguments.values(counts), out=offsets[1:])
+                offsets_arg = arguments.array(offsets, wp.int32)
+                neighbours, distances = arguments.empty(int(offsets[-1]), wp.int32), arguments.empty(int(offsets[-1]), scalar)
+                lists([grid.id, centroids_arg, self.params, offsets_arg], [counts, neighbours, distances])
             else:
-                offsets_wp, neighbours, distances = (wp.empty(0, dtype=kind, device=device) for kind in (wp.int32, wp.int32, scalar))
-                if gaps.shape[0]:
-                    wp.launch(_centroid_gap(self.dtype), dim=num, inputs=[grid.id, centroids_wp, self.params], outputs=[gaps], device=device)
-            inputs = [grid.id, self.points, centroids_wp, self.params, previous_wp, gaps, offsets_wp, neighbours, distances]
+                offsets_arg, neighbours, distances = arguments.empty(0, wp.int32), arguments.empty(0, wp.int32), arguments.empty(0, scalar)
+                if num_gaps:
+                    arguments.launch(_centroid_gap(self.dtype), num_gaps, [grid.id, centroids_arg, self.params, gaps])
+            inputs = [grid.id, self.points, centroids_arg, self.params, previous_arg, gaps, offsets_arg, neighbours, distances]
             launch_in_chunks(_nearest_centroid(self.dtype), 1, num_points, inputs, [labels], spare_threads=spare_threads)
-        result = labels.numpy()
+        result = arguments.values(labels)
         self._last = (result, labels)
         return result
 
@@ -772,14 +807,17 @@ class PatchSearch:
         scalar = WARP_SCALAR[self.dtype]
         vec = wp.types.vector(3, scalar)
         self.device = device
-        vertices_wp: wp.array = wp.array(vertices, dtype=vec, device=device)
-        faces_wp, candidates_wp = _int32_array(faces, device), _int32_array(candidates, device)
+        self.arguments = arguments = _HostArguments(device)
+        vertices_arg = arguments.array(np.ascontiguousarray(vertices), vec)
+        faces_arg = arguments.array(np.ascontiguousarray(faces, np.int32).reshape(-1), wp.int32)
+        candidates_arg = arguments.array(np.ascontiguousarray(candidates, np.int32), wp.int32)
         # Spheres per candidate (a face once per patch it is in): the search reads them in order.
-        centres = wp.empty(candidates.size, dtype=vec, device=device)
-        radii = wp.empty(candidates.size, dtype=scalar, device=device)
-        launch_in_chunks(_face_sphere(self.dtype), 1, candidates.size, [vertices_wp, faces_wp, candidates_wp], [centres, radii])
+        spheres = [wp.empty(candidates.size, dtype=vec, device=device), wp.empty(candidates.size, dtype=scalar, device=device)]
+        launch_in_chunks(_face_sphere(self.dtype), 1, candidates.size, [vertices_arg, faces_arg, candidates_arg], spheres)
         tolerances = np.array([PATCH_BOUND_SLACK * np.finfo(self.dtype).eps, *tie], self.dtype)
-        self.arrays = [vertices_wp, faces_wp, _int32_array(offsets, device), candidates_wp, centres, radii, wp.array(tolerances, dtype=scalar, device=device)]
+        offsets_arg = arguments.array(np.ascontiguousarray(offsets, np.int32), wp.int32)
+        spheres_args = [arguments.array(a.numpy(), a.dtype) if arguments.on_cpu else a for a in spheres]
+        self.arrays = [vertices_arg, faces_arg, offsets_arg, candidates_arg, *spheres_args, arguments.array(tolerances, scalar)]
         self.min_chunk = max(PATCH_MIN_CHUNK, round(PATCH_CHUNK_FACES * (offsets.size - 1) / max(candidates.size, 1)))
 
 
@@ -788,23 +826,16 @@ def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.nda
     faces of its patch ``patches`` ``(Q,)``; distances exact in the working dtype, ties (within
     the search's tie tolerance) to the lowest face index. ``hints`` ``(Q,)``: optionally a face
     of each point's patch near it (its distance bounds the search; the result is the same)."""
-    vec = wp.types.vector(3, WARP_SCALAR[search.dtype])
-    found = wp.empty(points.shape[0], dtype=wp.int32, device=search.device)
-    vertices, faces, offsets, candidates, centres, radii, tolerances = search.arrays
+    vec, arguments = wp.types.vector(3, WARP_SCALAR[search.dtype]), search.arguments
+    found = arguments.empty(points.shape[0], wp.int32)
     inputs = [
-        _host_view(np.ascontiguousarray(points, search.dtype), vec, search.device),
-        _host_view(np.ascontiguousarray(patches, np.int32), wp.int32, search.device),
-        vertices,
-        faces,
-        offsets,
-        candidates,
-        centres,
-        radii,
-        tolerances,
-        _host_view(np.ascontiguousarray(np.zeros(0) if hints is None else hints, np.int32), wp.int32, search.device),
+        arguments.array(np.ascontiguousarray(points, search.dtype), vec),
+        arguments.array(np.ascontiguousarray(patches, np.int32), wp.int32),
+        *search.arrays,
+        arguments.array(np.ascontiguousarray(np.zeros(0) if hints is None else hints, np.int32), wp.int32),
     ]
     launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=search.min_chunk)
-    return found.numpy()
+    return arguments.values(found)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -901,14 +932,10 @@ def vertex_plane_terms(faces: np.ndarray, first_corners: np.ndarray, doubled_nor
     each face ``(F, 3)``, summed into its corners, from the faces' first corners, doubled
     normals ``(F, 3)`` and areas ``(F,)`` (float64). One sequential CPU kernel outside the GIL
     (the remesher runs it on a second thread); the same bits as the NumPy twin."""
-    device = "cpu"
-    sums = wp.zeros((12, num_vertices), dtype=wp.float64, device=device)
-    floats: list[wp.array] = [
-        wp.array(np.ascontiguousarray(a, np.float64), dtype=wp.float64, device=device) for a in (first_corners, doubled_normals, face_area)
-    ]
-    inputs = [_int32_array(faces, device), *floats]
-    wp.launch(_vertex_plane_terms_kernel, dim=1, inputs=inputs, outputs=[sums], device=device)
-    return sums.numpy()
+    sums = np.zeros((12, num_vertices))
+    floats = [(np.ascontiguousarray(a, np.float64), wp.float64) for a in (first_corners, doubled_normals, face_area)]
+    launch_on_host(_vertex_plane_terms_kernel, 1, [(np.ascontiguousarray(faces, np.int32).reshape(-1), wp.int32), *floats, (sums, wp.float64)])
+    return sums
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1025,14 +1052,9 @@ def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray)
     or more from positions ``old`` to ``new`` ``(V, 3)`` (measured in float64): geomjax's
     remesher's check of a relaxation step (``geomjax.remesh._triangulation.overturned_vertices``),
     the same answer as its NumPy twin (the same roundings)."""
-    device = "cpu"
     turned = np.zeros(old.shape[0], np.int32)
-    inputs = [
-        _host_view(np.ascontiguousarray(old, np.float64), wp.vec3d, device),
-        _host_view(np.ascontiguousarray(new, np.float64), wp.vec3d, device),
-        _host_view(np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32, device),
-    ]
-    wp.launch(_overturned_kernel, dim=triangles.shape[0], inputs=inputs, outputs=[_host_view(turned, wp.int32, device)], device=device)
+    arrays = [(np.ascontiguousarray(old, np.float64), wp.vec3d), (np.ascontiguousarray(new, np.float64), wp.vec3d)]
+    launch_on_host(_overturned_kernel, triangles.shape[0], [*arrays, (np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32), (turned, wp.int32)])
     return turned.astype(bool)
 
 
@@ -1041,16 +1063,14 @@ def largest_sagittas(x: np.ndarray, unit: np.ndarray, triangles: np.ndarray) -> 
     estimate ``|(b - a) . (n_b - n_a)| / 8`` of its edges in ``triangles`` ``(T, 3)`` (``unit``
     ``(V, 3)``: unit normals), and whether a triangle uses it: geomjax's remesher's bending
     density (``geomjax.remesh._triangulation.bending_density``), the same bits as its NumPy twin."""
-    device = "cpu"
     largest, used = np.zeros(x.shape[0]), np.zeros(x.shape[0], np.int32)
-    inputs = [
-        _host_view(np.ascontiguousarray(x, np.float64), wp.vec3d, device),
-        _host_view(np.ascontiguousarray(unit, np.float64), wp.vec3d, device),
-        _host_view(np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32, device),
+    arrays = [
+        (np.ascontiguousarray(x, np.float64), wp.vec3d),
+        (np.ascontiguousarray(unit, np.float64), wp.vec3d),
+        (np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32),
     ]
     # The kernel writes into the NumPy arrays themselves.
-    outputs = [_host_view(largest, wp.float64, device), _host_view(used, wp.int32, device)]
-    wp.launch(_largest_sagittas_kernel, dim=triangles.shape[0], inputs=inputs, outputs=outputs, device=device)
+    launch_on_host(_largest_sagittas_kernel, triangles.shape[0], [*arrays, (largest, wp.float64), (used, wp.int32)])
     return largest, used.astype(bool)
 
 
@@ -1061,16 +1081,11 @@ def relaxation_sums(x: np.ndarray, triangles: np.ndarray, rho: np.ndarray | None
     (``geomjax.remesh._triangulation.relaxation_targets``; a triangle's mass is its area, times
     the mean of ``rho`` ``(V,)`` at its corners if given). One sequential CPU kernel; the same
     bits as the NumPy twin."""
-    device = "cpu"
     total, sums = np.zeros(x.shape[0]), np.zeros((x.shape[0], 3))
-    inputs = [
-        _host_view(np.ascontiguousarray(x, np.float64), wp.vec3d, device),
-        _host_view(np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32, device),
-        _host_view(np.zeros(0) if rho is None else np.ascontiguousarray(rho, np.float64), wp.float64, device),
-    ]
+    weights = np.zeros(0) if rho is None else np.ascontiguousarray(rho, np.float64)
+    arrays = [(np.ascontiguousarray(x, np.float64), wp.vec3d), (np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32), (weights, wp.float64)]
     # The kernel adds into the NumPy arrays themselves.
-    outputs = [_host_view(total, wp.float64, device), _host_view(sums, wp.vec3d, device)]
-    wp.launch(_relaxation_sums_kernel, dim=1, inputs=inputs, outputs=outputs, device=device)
+    launch_on_host(_relaxation_sums_kernel, 1, [*arrays, (total, wp.float64), (sums, wp.vec3d)])
     return total, sums
 
 
@@ -1199,16 +1214,16 @@ class EdgeGraph:
     float64 ``lengths``) and the queue of :func:`grow_forest`, kept on the CPU between calls."""
 
     def __init__(self, row_offsets: np.ndarray, columns: np.ndarray, lengths: np.ndarray):
-        device = "cpu"
+        # Kernel arguments as (NumPy array, Warp dtype): see warp_ffi._wrap.launch_on_host.
         lengths = np.ascontiguousarray(lengths, np.float64)
-        self.arrays: list[wp.array] = [_int32_array(row_offsets, device), _int32_array(columns, device), wp.array(lengths, dtype=wp.float64, device=device)]
+        self.arrays = [(np.ascontiguousarray(row_offsets, np.int32), wp.int32), (np.ascontiguousarray(columns, np.int32), wp.int32), (lengths, wp.float64)]
         self.width = float(np.mean(lengths)) if lengths.size else 1.0
         # A push improves a vertex or moves it with its parent: about once per cleared vertex,
         # seed and edge of an expanded vertex (few vertices are expanded twice).
         capacity = 2 * (row_offsets.size - 1) + columns.size + 1
-        self.entries = [wp.empty(capacity, dtype=kind, device=device) for kind in (wp.float64, wp.int32, wp.int32, wp.int32)]
-        self.buckets = [wp.empty(FOREST_BUCKETS, dtype=wp.int32, device=device) for _ in range(2)]
-        self.overflow = wp.zeros(1, dtype=wp.int32, device=device)
+        self.entries = [(np.empty(capacity, wp.dtype_to_numpy(kind)), kind) for kind in (wp.float64, wp.int32, wp.int32, wp.int32)]
+        self.buckets = [(np.empty(FOREST_BUCKETS, np.int32), wp.int32) for _ in range(2)]
+        self.overflow = np.zeros(1, np.int32)
 
 
 def grow_forest(
@@ -1231,12 +1246,9 @@ def grow_forest(
     were not a forest of the previous seeds, which could cycle, or a graph that needed more
     expansions than it holds); start over from nothing.
     """
-    device = "cpu"
-    graph.overflow.zero_()
-    inputs = [*graph.arrays, graph.width, *(_int32_array(a, device) for a in (cleared, seeds, seed_labels))]
-    # Wrapped, not copied: the kernel writes the caller's arrays.
-    state: list[wp.array] = [
-        wp.array(a, dtype=kind, device=device, copy=False) for a, kind in ((distance, wp.float64), (labels, wp.int32), (parents, wp.int32))
-    ]
-    wp.launch(_grow_forest_kernel, dim=1, inputs=inputs, outputs=[*state, *graph.entries, *graph.buckets, graph.overflow], device=device)
-    return not graph.overflow.numpy()[0]
+    graph.overflow[0] = 0
+    inputs = [*graph.arrays, graph.width, *((np.ascontiguousarray(a, np.int32), wp.int32) for a in (cleared, seeds, seed_labels))]
+    # The kernel writes the caller's arrays themselves.
+    state = [(distance, wp.float64), (labels, wp.int32), (parents, wp.int32)]
+    launch_on_host(_grow_forest_kernel, 1, [*inputs, *state, *graph.entries, *graph.buckets, (graph.overflow, wp.int32)])
+    return not graph.overflow[0]
