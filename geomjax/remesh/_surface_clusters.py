@@ -22,11 +22,6 @@ from ._triangulation import half_edges, relabelled_triangles, row_dot
 
 __all__ = ["ClusterPatches", "MeshEdges", "SeedForest", "VertexMoments", "cluster_means", "connected_clusters", "mend_tears"]
 
-# Below this many vertices SciPy's whole Dijkstra costs less than a kernel launch with its
-# arrays (decimated-knight, 502 vertices: 0.3 ms more per remesh with the kernel; the shared
-# meshes of 3,400 to 4,500 vertices: 0.5 to 0.8 ms less).
-FOREST_KERNEL_MIN_VERTICES = 2000
-
 
 class MeshEdges(NamedTuple):
     """The undirected edges of a triangle mesh, computed once per remesh.
@@ -100,13 +95,13 @@ class SeedForest:
 
     Each vertex belongs to the seed nearest along the edges, reached from a neighbour of its own
     cluster (so every cluster is connected); a vertex that no seed reaches keeps its label with
-    an infinite distance. With warp-lang installed and at least ``FOREST_KERNEL_MIN_VERTICES``
-    vertices a Warp kernel grows the forest (label-correcting shortest paths on a queue of
-    distance buckets, no heap): from nothing the first time (60% of SciPy's time on the
-    armadillo), then only where it changes: it clears the vertices of the labels whose seed
-    changed and grows them back from their kept neighbours and the new seeds, so its cost
-    follows what changes (the graph Lloyd and mending rounds move a fifth of the seeds or
-    fewer). Otherwise each assignment is SciPy's multi-source Dijkstra. The distances are the
+    an infinite distance. With warp-lang installed a Warp kernel grows the forest
+    (label-correcting shortest paths on a queue of distance buckets, no heap): from nothing the
+    first time (60% of SciPy's time on the armadillo), then only where it changes: it clears
+    the vertices of the labels whose seed changed and grows them back from their kept
+    neighbours and the new seeds, so its cost follows what changes (the graph Lloyd and mending
+    rounds move a fifth of the seeds or fewer). Otherwise each assignment is SciPy's
+    multi-source Dijkstra. The distances are the
     same either way; between seeds at exactly the same distance each picks one,
     deterministically (SciPy by its heap order, the kernel the lowest label among a changed
     vertex's).
@@ -131,7 +126,7 @@ class SeedForest:
         seed_of = np.full(self.num_clusters, -1, np.int64)
         seed_of[seed_labels] = seeds
         previous, self.seed_of = self.seed_of, seed_of
-        if self.labels.size >= FOREST_KERNEL_MIN_VERTICES and warp_available():
+        if warp_available():
             from warp_ffi.remesh import EdgeGraph, grow_forest
 
             if self._kernel_graph is None:

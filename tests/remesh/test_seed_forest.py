@@ -87,7 +87,6 @@ def _grid_with_coincident_columns():
 def test_forest_is_the_nearest_seed_along_the_edges(surface, with_warp, monkeypatch):
     if with_warp:
         pytest.importorskip("warp")
-        monkeypatch.setattr(surface_clusters, "FOREST_KERNEL_MIN_VERTICES", 0)
     else:  # SciPy every time
         monkeypatch.setattr(surface_clusters, "warp_available", lambda: False)
     vertices, faces = {"grid": lambda: _grid(12), "coincident": _grid_with_coincident_columns, "spheres": _jittered_spheres}[surface]()
@@ -134,7 +133,6 @@ def test_a_full_queue_falls_back_to_scipy(monkeypatch):
             small_queues.append(self)
 
     monkeypatch.setattr("warp_ffi.remesh.EdgeGraph", SmallQueue)
-    monkeypatch.setattr(surface_clusters, "FOREST_KERNEL_MIN_VERTICES", 0)
     for forest, seed_of in _moves(edges, 16, np.random.default_rng(3)):
         before = forest.labels.copy()
         live = np.flatnonzero(seed_of >= 0)
