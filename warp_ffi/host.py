@@ -74,7 +74,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "overturned_vertices", "EdgeGraph", "grow_forest",
+    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "overturned_vertices", "flip_rules", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -1056,6 +1056,91 @@ def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray)
     arrays = [(np.ascontiguousarray(old, np.float64), wp.vec3d), (np.ascontiguousarray(new, np.float64), wp.vec3d)]
     launch_on_host(_overturned_kernel, triangles.shape[0], [*arrays, (np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32), (turned, wp.int32)])
     return turned.astype(bool)
+
+
+@wp.func
+@no_type_check
+def _cross(a: wp.vec3d, b: wp.vec3d):
+    """``a x b``, rounded as the NumPy twins' row_cross."""
+    return wp.vec3d(a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@wp.func
+@no_type_check
+def _dot(a: wp.vec3d, b: wp.vec3d):
+    """``a . b``, summed as the NumPy twins' row_dot."""
+    return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
+
+
+@wp.func
+@no_type_check
+def _unit(a: wp.vec3d):
+    """``a / |a|`` (``a`` itself if its norm is not positive), as the NumPy twins' unit_rows."""
+    norm = wp.sqrt(_dot(a, a))
+    if norm > wp.float64(0.0):
+        return wp.vec3d(a[0] / norm, a[1] / norm, a[2] / norm)
+    return a
+
+
+@wp.kernel
+@no_type_check
+def _flip_rules_kernel(
+    x: wp.array(dtype=wp.vec3d), u: wp.array(dtype=wp.int64), v: wp.array(dtype=wp.int64), p: wp.array(dtype=wp.int64), q: wp.array(dtype=wp.int64),
+    edges: wp.array(dtype=wp.int64), degree: wp.array(dtype=wp.int64), stride: wp.int64, flat_factor: wp.float64, flat: wp.array(dtype=wp.int32),
+    flippable: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    i = wp.tid()
+    a = u[i]
+    b = v[i]
+    c = p[i]
+    d = q[i]
+    xa = x[a]
+    xb = x[b]
+    xc = x[c]
+    xd = x[d]
+    # Flat: the new diagonal cd passes within flat_factor |cd| of the old one ab.
+    across = _cross(xb - xa, xd - xc)
+    length = wp.sqrt(_dot(across, across))
+    if length < wp.float64(2.2250738585072014e-308):  # np.maximum(length, tiny); NaN stays NaN
+        length = wp.float64(2.2250738585072014e-308)
+    cd = xd - xc
+    if wp.abs(_dot(xc - xa, across)) / length <= flat_factor * wp.sqrt(_dot(cd, cd)):
+        flat[i] = 1
+    # Flippable: cd is no edge yet (a binary search of the sorted keys), a and b keep more than
+    # three edges, and both new triangles face like the old pair.
+    key = wp.min(c, d) * stride + wp.max(c, d)
+    low = int(0)
+    high = edges.shape[0]
+    while low < high:
+        middle = (low + high) // 2
+        if edges[middle] < key:
+            low = middle + 1
+        else:
+            high = middle
+    existing = False
+    if low < edges.shape[0]:
+        existing = edges[low] == key
+    old_normal = _unit(_cross(xb - xa, xc - xa)) + _unit(_cross(xa - xb, xd - xb))
+    unfolded = _dot(_cross(xd - xa, xc - xa), old_normal) > wp.float64(0.0) and _dot(_cross(xb - xd, xc - xd), old_normal) > wp.float64(0.0)
+    if not existing and degree[a] > wp.int64(3) and degree[b] > wp.int64(3) and unfolded:
+        flippable[i] = 1
+
+
+def flip_rules(
+    x: np.ndarray, u: np.ndarray, v: np.ndarray, p: np.ndarray, q: np.ndarray, edges: np.ndarray, degree: np.ndarray, flat_factor: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(M,)`` bool twice: per pair of triangles ``(u, v, p)`` and ``(v, u, q)`` (int64
+    ``(M,)`` vertex indices of ``x`` ``(V, 3)`` float64), whether it is flat (the new diagonal
+    ``pq`` passes within ``flat_factor |pq|`` of ``uv``) and flippable (``pq`` is not among the
+    sorted int64 edge keys ``min * V + max`` ``edges``, ``u`` and ``v`` have more than three
+    edges by ``degree`` ``(V,)`` int64, and both new triangles face like the old pair):
+    geomjax's remesher's flip rules (``geomjax.remesh._flips``), the same answers as their NumPy
+    twin (the same roundings)."""
+    flat, flippable = np.zeros(u.shape[0], np.int32), np.zeros(u.shape[0], np.int32)
+    corners = [(np.ascontiguousarray(a, np.int64), wp.int64) for a in (u, v, p, q)]
+    graph = [(np.ascontiguousarray(edges, np.int64), wp.int64), (np.ascontiguousarray(degree, np.int64), wp.int64), x.shape[0], float(flat_factor)]
+    launch_on_host(_flip_rules_kernel, u.shape[0], [(np.ascontiguousarray(x, np.float64), wp.vec3d), *corners, *graph, (flat, wp.int32), (flippable, wp.int32)])
+    return flat.astype(bool), flippable.astype(bool)
 
 
 def largest_sagittas(x: np.ndarray, unit: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,6 @@
 """The clustering remesher's host-side kernels: the faces' corners, normals and areas, nearest
 centroids on a Warp hash grid, the nearest face of each point among its cluster's faces, the
-plane quadric terms summed into the vertices, the relaxation's bending measure, circumcentre sums and fold check, and the
+plane quadric terms summed into the vertices, the relaxation's bending measure, circumcentre sums and fold check, the flip rules, and the
 clusters as a shortest-path forest of the edge graph.
 
 Host-side NumPy functions; they live in :mod:`warp_ffi.host` with the other host-side entry
@@ -11,6 +11,7 @@ from .host import CentroidSearch as CentroidSearch
 from .host import EdgeGraph as EdgeGraph
 from .host import PatchSearch as PatchSearch
 from .host import face_geometry as face_geometry
+from .host import flip_rules as flip_rules
 from .host import grow_forest as grow_forest
 from .host import largest_sagittas as largest_sagittas
 from .host import nearest_centroids as nearest_centroids

@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._dispatch import warp_available
 from ._triangulation import corner_angles, half_edges, min_angles, rotated_corners, row_cross, row_dot, row_norm, unit_rows
 
 __all__ = ["delaunay_flips", "fold_flips"]
@@ -24,6 +25,9 @@ FLIP_TOLERANCE = 1e-6  # radians: opposite angles must exceed pi by this much (c
 # Edges between triangles whose normals differ by more than this are creases of the surface:
 # flipping them would cut the crease, so they stay (a flat pair flips at any shape).
 FLIP_MAX_DIHEDRAL_DEGREES = 20.0
+# A pair is flat when its new diagonal passes within this fraction of its length from the old
+# one: tan(dihedral / 2) / 2 across a symmetric crease of that dihedral angle.
+FLAT_FACTOR = 0.5 * math.tan(math.radians(FLIP_MAX_DIHEDRAL_DEGREES) / 2)
 
 # Fold flips: of the pairs with the largest estimated heights over the surface, this many are
 # measured; one is flipped where its largest measured distance drops by FOLD_GAIN and both new
@@ -50,13 +54,8 @@ def delaunay_flips(positions: np.ndarray, triangles: np.ndarray, rounds: int = F
         excess = corner_angles(x[p], x[u], x[v]) + corner_angles(x[q], x[u], x[v]) - np.pi
         pairs = pairs.subset(excess > FLIP_TOLERANCE)
         excess = excess[excess > FLIP_TOLERANCE]
-        u, v, p, q = pairs.u, pairs.v, pairs.p, pairs.q
-        # How far the new diagonal pq passes from the old one uv, relative to its length: 0 for a
-        # flat pair or a sliver (p near uv), tan(dihedral / 2) / 2 across a symmetric crease.
-        across = row_cross(x[v] - x[u], x[q] - x[p])
-        gap = np.abs(row_dot(x[p] - x[u], across)) / np.maximum(row_norm(across), np.finfo(np.float64).tiny)
-        flat = gap <= 0.5 * math.tan(math.radians(FLIP_MAX_DIHEDRAL_DEGREES) / 2) * row_norm(x[q] - x[p])
-        candidates = np.flatnonzero(pairs.flippable(x, stride) & flat)
+        flat, flippable = pairs.rules(x, stride)
+        candidates = np.flatnonzero(flippable & flat)
         if candidates.size == 0:
             break
         pairs.flip(triangles, candidates, -excess[candidates], stride)
@@ -105,7 +104,7 @@ def fold_flips(positions: np.ndarray, triangles: np.ndarray, normals: np.ndarray
     promising = promising[np.argsort(-old[promising], kind="stable")[:FOLD_CHECKED]]
     u, v, p, q = u[promising], v[promising], p[promising], q[promising]
     fair = np.minimum(min_angles(x, np.stack([u, q, p], 1)), min_angles(x, np.stack([q, v, p], 1))) >= FOLD_MIN_ANGLE_DEGREES
-    keep = fair & pairs.subset(promising).flippable(x, stride)
+    keep = fair & pairs.subset(promising).rules(x, stride)[1]
     promising, u, v, p, q = promising[keep], u[keep], v[keep], p[keep], q[keep]
     if promising.size == 0:
         return triangles
@@ -158,16 +157,19 @@ class _Pairs(NamedTuple):
     def subset(self, rows: np.ndarray) -> _Pairs:
         return _Pairs(self.first[rows], self.second[rows], self.u[rows], self.v[rows], self.p[rows], self.q[rows], self.edges)
 
-    def flippable(self, x: np.ndarray, stride: np.int64) -> np.ndarray:
-        """Per pair: the new diagonal ``pq`` is not an edge already, ``u`` and ``v`` keep three
-        edges or more, and both new triangles face like the old pair."""
-        u, v, p, q, edges = self.u, self.v, self.p, self.q, self.edges
-        new_keys = np.minimum(p, q) * stride + np.maximum(p, q)
-        existing = edges[np.minimum(np.searchsorted(edges, new_keys), edges.size - 1)] == new_keys
-        degree = np.bincount(np.concatenate([edges // stride, edges % stride]), minlength=int(stride))
-        old_normal = unit_rows(row_cross(x[v] - x[u], x[p] - x[u])) + unit_rows(row_cross(x[u] - x[v], x[q] - x[v]))
-        unfolded = (row_dot(row_cross(x[q] - x[u], x[p] - x[u]), old_normal) > 0) & (row_dot(row_cross(x[v] - x[q], x[p] - x[q]), old_normal) > 0)
-        return ~existing & (degree[u] > 3) & (degree[v] > 3) & unfolded
+    def rules(self, x: np.ndarray, stride: np.int64) -> tuple[np.ndarray, np.ndarray]:
+        """Per pair, whether it is *flat* (the distance between the new diagonal ``pq`` and
+        ``uv``, relative to ``|pq|``, is at most ``FLAT_FACTOR``: that ratio is 0 for a flat
+        pair or a sliver, ``tan(dihedral / 2) / 2`` across a symmetric crease) and *flippable*
+        (``pq`` is not an edge already, ``u`` and ``v`` keep three edges or more, and both new
+        triangles face like the old pair). With warp-lang from a kernel
+        (``warp_ffi.remesh.flip_rules``, the same answers)."""
+        degree = np.bincount(np.concatenate([self.edges // stride, self.edges % stride]), minlength=int(stride))
+        if warp_available():
+            from warp_ffi.remesh import flip_rules
+
+            return flip_rules(x, self.u, self.v, self.p, self.q, self.edges, degree, FLAT_FACTOR)
+        return _flip_rules(x, self.u, self.v, self.p, self.q, self.edges, degree, stride)
 
     def flip(self, triangles: np.ndarray, candidates: np.ndarray, priority: np.ndarray, stride: np.int64) -> None:
         """Flip, in place, the ``candidates`` (rows) that share no triangle with one of lower
@@ -185,6 +187,18 @@ class _Pairs(NamedTuple):
         chosen &= _first_occurrence(np.where(chosen, new_keys, -1 - np.arange(candidates.size)))
         triangles[face_a[chosen]] = np.stack([u[chosen], q[chosen], p[chosen]], axis=1)
         triangles[face_b[chosen]] = np.stack([q[chosen], v[chosen], p[chosen]], axis=1)
+
+
+def _flip_rules(x, u, v, p, q, edges, degree, stride) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`_Pairs.rules` in NumPy (the twin of ``warp_ffi.remesh.flip_rules``)."""
+    across = row_cross(x[v] - x[u], x[q] - x[p])
+    gap = np.abs(row_dot(x[p] - x[u], across)) / np.maximum(row_norm(across), np.finfo(np.float64).tiny)
+    flat = gap <= FLAT_FACTOR * row_norm(x[q] - x[p])
+    new_keys = np.minimum(p, q) * stride + np.maximum(p, q)
+    existing = edges[np.minimum(np.searchsorted(edges, new_keys), edges.size - 1)] == new_keys
+    old_normal = unit_rows(row_cross(x[v] - x[u], x[p] - x[u])) + unit_rows(row_cross(x[u] - x[v], x[q] - x[v]))
+    unfolded = (row_dot(row_cross(x[q] - x[u], x[p] - x[u]), old_normal) > 0) & (row_dot(row_cross(x[v] - x[q], x[p] - x[q]), old_normal) > 0)
+    return flat, ~existing & (degree[u] > 3) & (degree[v] > 3) & unfolded
 
 
 def _first_occurrence(values: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@
 and orientation computations."""
 
 import numpy as np
+import pytest
 
 from benchmarks import _quality as quality
 from geomjax import icosphere
@@ -71,11 +72,18 @@ def test_corners_that_cannot_move_stay():
     assert np.array_equal(moved, points)
 
 
-def test_flip_rules_on_a_grid():
+@pytest.mark.parametrize("with_warp", [True, False])
+def test_flip_rules_on_a_grid(with_warp, monkeypatch):
     # Every interior edge of a grid (one vertex pulled across a diagonal, so that some flips
     # would fold): flippable where the other diagonal is not an edge yet, both ends keep more
-    # than three edges and both new triangles face up (+z, like the grid's), checked edge by edge.
+    # than three edges and both new triangles face up (+z, like the grid's), checked edge by edge;
+    # every pair of the plane is flat.
     from geomjax.remesh._flips import _Pairs
+
+    if with_warp:
+        pytest.importorskip("warp")
+    else:
+        monkeypatch.setattr("geomjax.remesh._flips.warp_available", lambda: False)
 
     points, faces = _grid(5)
     points[12] += [0.9, 0.9, 0.0]
@@ -98,7 +106,36 @@ def test_flip_rules_on_a_grid():
     assert expected.any() and not expected.all()
     duplicating = [(min(p, q), max(p, q)) in edges and degree[u] > 3 and degree[v] > 3 for u, v, p, q in zip(pairs.u, pairs.v, pairs.p, pairs.q)]
     assert any(duplicating)
-    np.testing.assert_array_equal(pairs.flippable(points, stride), expected)
+    flat, flippable = pairs.rules(points, stride)
+    np.testing.assert_array_equal(flippable, expected)
+    assert flat.all()
+
+
+def test_flip_rules_kernel_answers_as_its_twin():
+    # Pairs of a jittered icosphere (creases of every dihedral angle) with coincident corners
+    # (zero normals and gaps): the kernel decides each rule as the NumPy twin does (the same
+    # roundings; the grid above checks an existing diagonal).
+    pytest.importorskip("warp")
+    from geomjax.remesh._flips import FLAT_FACTOR, _flip_rules, _Pairs
+    from warp_ffi.remesh import flip_rules
+
+    sphere = icosphere(3)
+    rng = np.random.default_rng(7)
+    points = np.asarray(sphere.points, np.float64) * rng.uniform(0.7, 1.3, (len(sphere.points), 1))
+    faces = np.asarray(sphere.cells, np.int32)
+    points[faces[:40, 1]] = points[faces[:40, 0]]  # coincident corners
+    stride = np.int64(len(points))
+    pairs = _Pairs.of(faces, stride)
+    u, v, p, q = pairs.u, pairs.v, pairs.p, pairs.q
+    # The last pair's first triangle flat (p on uv), its second not: its normal is the pair's.
+    points[[u[-1], v[-1], p[-1], q[-1]]] = [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, -1.0, 0.0]]
+    degree = np.bincount(np.concatenate([pairs.edges // stride, pairs.edges % stride]), minlength=int(stride))
+    kernel = flip_rules(points, u, v, p, q, pairs.edges, degree, FLAT_FACTOR)
+    twin = _flip_rules(points, u, v, p, q, pairs.edges, degree, stride)
+    assert twin[1][-1]
+    for ours, theirs in zip(kernel, twin):
+        assert 0 < theirs.sum() < theirs.size
+        np.testing.assert_array_equal(ours, theirs)
 
 
 def test_overturned_vertices_are_the_corners_of_flipped_triangles(monkeypatch):
