@@ -109,6 +109,10 @@ def half_edges(triangles: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarr
     return tail, head, np.minimum(tail, head) * stride + np.maximum(tail, head)
 
 
+# Labels below this: a triangle's three sorted labels make one int64 key (2**21 cubed is 2**63).
+_KEYED_LABEL_LIMIT = 2**21 - 1
+
+
 def relabelled_triangles(labels: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """The triangles ``corners`` (``(3, F)``: each face's first, second and third corner, e.g.
     ``faces.T`` made contiguous, so that each corner's labels are read and compared in
@@ -119,9 +123,21 @@ def relabelled_triangles(labels: np.ndarray, corners: np.ndarray) -> np.ndarray:
     triangles = np.stack([a[keep], b[keep], c[keep]], axis=1)
     if triangles.shape[0] == 0:
         return triangles
-    # Duplicates in any orientation: keep the first occurrence (lexsort is stable).
+    # Duplicates in any orientation: keep the first occurrence. Each triangle's labels, sorted,
+    # as one int64 key while the largest label cubed fits (a third of the cost of sorting rows).
+    top = int(labels.max()) + 1
+    if top <= _KEYED_LABEL_LIMIT:
+        low = np.minimum(np.minimum(a[keep], b[keep]), c[keep]).astype(np.int64)
+        high = np.maximum(np.maximum(a[keep], b[keep]), c[keep]).astype(np.int64)
+        middle = a[keep].astype(np.int64) + b[keep] + c[keep] - low - high
+        key = (low * top + middle) * top + high
+        ordered = np.sort(key)
+        if not np.any(ordered[1:] == ordered[:-1]):
+            return triangles
+        _, first = np.unique(key, return_index=True)  # the first occurrence of each key
+        return triangles[np.sort(first)]
     ordered = np.sort(triangles, axis=1)
-    order = np.lexsort(ordered.T[::-1])
+    order = np.lexsort(ordered.T[::-1])  # stable: the first occurrence leads
     ordered = ordered[order]
     first = np.ones(order.size, bool)
     first[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)

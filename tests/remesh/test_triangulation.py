@@ -12,6 +12,7 @@ from geomjax.remesh._triangulation import (
     bending_density,
     boundary_vertices,
     overturned_vertices,
+    relabelled_triangles,
     relaxation_targets,
     relocate_poor_corners,
     topology,
@@ -136,6 +137,30 @@ def test_flip_rules_kernel_answers_as_its_twin():
     for ours, theirs in zip(kernel, twin):
         assert 0 < theirs.sum() < theirs.size
         np.testing.assert_array_equal(ours, theirs)
+
+
+@pytest.mark.parametrize("keyed", [True, False])
+def test_relabelled_triangles_keep_the_first_of_each_triangle(keyed, monkeypatch):
+    # Random labels on a random triangulation: many faces collapse (two equal labels) and many
+    # relabel to the same triangle in either orientation; the first of each remains, in order.
+    # keyed=False: labels too large for one int64 key per triangle (the row-sorting path).
+    if not keyed:
+        monkeypatch.setattr("geomjax.remesh._triangulation._KEYED_LABEL_LIMIT", 4)
+    # Nine labels: many repeats; a label per vertex: a few; an icosphere's faces relabelled by a
+    # permutation: none.
+    rng = np.random.default_rng(11)
+    random_corners = np.ascontiguousarray(rng.integers(0, 60, (3, 400)))
+    sphere_corners = np.ascontiguousarray(np.asarray(icosphere(1).cells).T)
+    cases = [(rng.integers(0, 9, 60), random_corners), (rng.permutation(60), random_corners), (rng.permutation(42), sphere_corners)]
+    for labels, corners in cases:
+        labels = labels.astype(np.int32)
+        seen, expected = set(), []
+        for face in labels[corners].T.tolist():
+            if len(set(face)) == 3 and frozenset(face) not in seen:
+                seen.add(frozenset(face))
+                expected.append(face)
+        assert len(expected) > 10
+        np.testing.assert_array_equal(relabelled_triangles(labels, corners), np.array(expected))
 
 
 def test_overturned_vertices_are_the_corners_of_flipped_triangles(monkeypatch):
