@@ -74,7 +74,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "overturned_vertices", "flip_rules", "EdgeGraph", "grow_forest",
+    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "overturned_vertices", "flip_rules", "corner_terms", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -1141,6 +1141,31 @@ def flip_rules(
     graph = [(np.ascontiguousarray(edges, np.int64), wp.int64), (np.ascontiguousarray(degree, np.int64), wp.int64), x.shape[0], float(flat_factor)]
     launch_on_host(_flip_rules_kernel, u.shape[0], [(np.ascontiguousarray(x, np.float64), wp.vec3d), *corners, *graph, (flat, wp.int32), (flippable, wp.int32)])
     return flat.astype(bool), flippable.astype(bool)
+
+
+@wp.kernel
+@no_type_check
+def _corner_terms_kernel(
+    x: wp.array(dtype=wp.vec3d), apex: wp.array(dtype=wp.int64), first: wp.array(dtype=wp.int64), second: wp.array(dtype=wp.int64),
+    terms: wp.array(dtype=wp.vec2d),
+):  # fmt: skip
+    i = wp.tid()
+    origin = x[apex[i]]
+    u = x[first[i]] - origin
+    v = x[second[i]] - origin
+    normal = _cross(u, v)
+    terms[i] = wp.vec2d(wp.sqrt(_dot(normal, normal)), _dot(u, v))
+
+
+def corner_terms(x: np.ndarray, apex: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """``(M, 2)`` float64: per corner, ``|u x v|`` and ``u . v`` with ``u = x[first] - x[apex]``
+    and ``v = x[second] - x[apex]`` (``x`` ``(V, 3)`` float64, int64 indices ``(M,)``): the sine
+    and cosine terms of the corner's angle, whose ``arctan2`` is geomjax's remesher's corner
+    angle (``geomjax.remesh._triangulation.corner_angles``; the same bits as its NumPy twin)."""
+    terms = np.empty((apex.shape[0], 2))
+    corners = [(np.ascontiguousarray(a, np.int64), wp.int64) for a in (apex, first, second)]
+    launch_on_host(_corner_terms_kernel, apex.shape[0], [(np.ascontiguousarray(x, np.float64), wp.vec3d), *corners, (terms, wp.vec2d)])
+    return terms
 
 
 def largest_sagittas(x: np.ndarray, unit: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .._dispatch import warp_available
-from ._triangulation import corner_angles, half_edges, min_angles, rotated_corners, row_cross, row_dot, row_norm, unit_rows
+from ._triangulation import corner_angles_at, half_edges, min_angles, rotated_corners, row_cross, row_dot, row_norm, unit_rows
 
 __all__ = ["delaunay_flips", "fold_flips"]
 
@@ -50,8 +50,9 @@ def delaunay_flips(positions: np.ndarray, triangles: np.ndarray, rounds: int = F
     stride = np.int64(positions.shape[0])
     for _ in range(rounds):
         pairs = _Pairs.of(triangles, stride)
-        u, v, p, q = pairs.u, pairs.v, pairs.p, pairs.q
-        excess = corner_angles(x[p], x[u], x[v]) + corner_angles(x[q], x[u], x[v]) - np.pi
+        u, v = np.tile(pairs.u, 2), np.tile(pairs.v, 2)
+        opposite = corner_angles_at(x, np.concatenate([pairs.p, pairs.q]), u, v)
+        excess = opposite[: pairs.p.size] + opposite[pairs.p.size :] - np.pi
         pairs = pairs.subset(excess > FLIP_TOLERANCE)
         excess = excess[excess > FLIP_TOLERANCE]
         flat, flippable = pairs.rules(x, stride)

@@ -17,6 +17,7 @@ __all__ = [
     "bending_density",
     "boundary_vertices",
     "corner_angles",
+    "corner_angles_at",
     "collapse_poor_triangles",
     "column_max",
     "column_min",
@@ -199,11 +200,24 @@ def corner_angles(apex: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.arctan2(row_norm(row_cross(u, v)), row_dot(u, v))
 
 
+def corner_angles_at(x: np.ndarray, apex: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """``(M,)`` :func:`corner_angles` at ``x[apex]`` between ``x[first]`` and ``x[second]``
+    (``x`` ``(V, 3)`` float64, indices ``(M,)``). With warp-lang the sine and cosine terms come
+    from a kernel (``warp_ffi.remesh.corner_terms``, the same bits), without the gathers."""
+    if warp_available():
+        from warp_ffi.remesh import corner_terms
+
+        terms = corner_terms(x, apex, first, second)
+        return np.arctan2(terms[:, 0], terms[:, 1])
+    return corner_angles(x[apex], x[first], x[second])
+
+
 def min_angles(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """``(F,)`` smallest angle of each triangle, in degrees."""
     x = positions.astype(np.float64)
-    a, b, c = (x[triangles[:, k]] for k in range(3))
-    return np.degrees(np.minimum(np.minimum(corner_angles(a, b, c), corner_angles(b, c, a)), corner_angles(c, a, b)))
+    # The corners in order (a at a between b and c, b between c and a, c between a and b).
+    angles = corner_angles_at(x, triangles.reshape(-1), rotated_corners(triangles, 1).reshape(-1), rotated_corners(triangles, 2).reshape(-1)).reshape(-1, 3)
+    return np.degrees(np.minimum(np.minimum(angles[:, 0], angles[:, 1]), angles[:, 2]))
 
 
 def unit_rows(v: np.ndarray) -> np.ndarray:

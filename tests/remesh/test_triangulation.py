@@ -163,6 +163,34 @@ def test_relabelled_triangles_keep_the_first_of_each_triangle(keyed, monkeypatch
         np.testing.assert_array_equal(relabelled_triangles(labels, corners), np.array(expected))
 
 
+def test_corner_angles_kernel_gives_the_twins_bits(monkeypatch):
+    # Every corner of a jittered icosphere with some coincident corners (zero angles' terms):
+    # the kernel's sine and cosine terms give the NumPy twin's angles to the bit, and the
+    # smallest angles agree with arccos of normalised dot products.
+    pytest.importorskip("warp")
+    from geomjax.remesh._triangulation import corner_angles_at, min_angles
+
+    sphere = icosphere(2)
+    rng = np.random.default_rng(5)
+    points = np.asarray(sphere.points, np.float64) * rng.uniform(0.8, 1.2, (len(sphere.points), 1))
+    faces = np.asarray(sphere.cells, np.int64)
+    points[faces[:10, 1]] = points[faces[:10, 0]]
+    apex, first, second = faces.reshape(-1), np.roll(faces, -1, axis=1).reshape(-1), np.roll(faces, -2, axis=1).reshape(-1)
+    kernel = corner_angles_at(points, apex, first, second)
+    smallest = min_angles(points, faces)
+    with monkeypatch.context() as patch:
+        patch.setattr("geomjax.remesh._triangulation.warp_available", lambda: False)
+        np.testing.assert_array_equal(corner_angles_at(points, apex, first, second), kernel)
+        np.testing.assert_array_equal(min_angles(points, faces), smallest)
+    u, v = points[first] - points[apex], points[second] - points[apex]
+    lengths = np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1)
+    # (A corner with a zero side has angle 0, as arctan2(0, 0) gives.)
+    cosine = np.where(lengths > 0, np.einsum("ij,ij->i", u, v) / np.where(lengths > 0, lengths, 1.0), 1.0)
+    expected = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))).reshape(-1, 3).min(axis=1)
+    assert (smallest == 0).sum() >= 10  # (the triangles around a moved vertex too)
+    np.testing.assert_allclose(smallest, expected, atol=1e-6)
+
+
 def test_overturned_vertices_are_the_corners_of_flipped_triangles(monkeypatch):
     # A grid whose vertex 12 moves past its neighbours: the triangles around it turn over (their
     # normals' z changes sign), and their corners are flagged; a small move flags nothing.
