@@ -1147,25 +1147,28 @@ def flip_rules(
 @no_type_check
 def _corner_terms_kernel(
     x: wp.array(dtype=wp.vec3d), apex: wp.array(dtype=wp.int64), first: wp.array(dtype=wp.int64), second: wp.array(dtype=wp.int64),
-    terms: wp.array(dtype=wp.vec2d),
+    sines: wp.array(dtype=wp.float64), cosines: wp.array(dtype=wp.float64),
 ):  # fmt: skip
     i = wp.tid()
     origin = x[apex[i]]
     u = x[first[i]] - origin
     v = x[second[i]] - origin
     normal = _cross(u, v)
-    terms[i] = wp.vec2d(wp.sqrt(_dot(normal, normal)), _dot(u, v))
+    sines[i] = wp.sqrt(_dot(normal, normal))
+    cosines[i] = _dot(u, v)
 
 
-def corner_terms(x: np.ndarray, apex: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """``(M, 2)`` float64: per corner, ``|u x v|`` and ``u . v`` with ``u = x[first] - x[apex]``
-    and ``v = x[second] - x[apex]`` (``x`` ``(V, 3)`` float64, int64 indices ``(M,)``): the sine
-    and cosine terms of the corner's angle, whose ``arctan2`` is geomjax's remesher's corner
-    angle (``geomjax.remesh._triangulation.corner_angles``; the same bits as its NumPy twin)."""
-    terms = np.empty((apex.shape[0], 2))
+def corner_terms(x: np.ndarray, apex: np.ndarray, first: np.ndarray, second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(M,)`` float64 twice: per corner, ``|u x v|`` and ``u . v`` with ``u = x[first] -
+    x[apex]`` and ``v = x[second] - x[apex]`` (``x`` ``(V, 3)`` float64, int64 indices
+    ``(M,)``): the sine and cosine terms of the corner's angle, whose ``arctan2`` is geomjax's
+    remesher's corner angle (``geomjax.remesh._triangulation.corner_angles``; the same bits as
+    its NumPy twin). Separate contiguous arrays: NumPy's vectorised arctan2 (AVX-512) takes only
+    those, and may round differently from its strided loop."""
+    sines, cosines = np.empty(apex.shape[0]), np.empty(apex.shape[0])
     corners = [(np.ascontiguousarray(a, np.int64), wp.int64) for a in (apex, first, second)]
-    launch_on_host(_corner_terms_kernel, apex.shape[0], [(np.ascontiguousarray(x, np.float64), wp.vec3d), *corners, (terms, wp.vec2d)])
-    return terms
+    launch_on_host(_corner_terms_kernel, apex.shape[0], [(np.ascontiguousarray(x, np.float64), wp.vec3d), *corners, (sines, wp.float64), (cosines, wp.float64)])
+    return sines, cosines
 
 
 def largest_sagittas(x: np.ndarray, unit: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,8 @@
 """The clustering remesher's host-side kernels: the faces' corners, normals and areas, nearest
 centroids on a Warp hash grid, the nearest face of each point among its cluster's faces, the
-plane quadric terms summed into the vertices, the relaxation's bending measure, circumcentre sums and fold check, the flip rules, corner angles, and
-the clusters as a shortest-path forest of the edge graph.
+plane quadric terms summed into the vertices, the relaxation's bending measure, circumcentre
+sums and fold check, the flip rules, corner angles, and the clusters as a shortest-path forest
+of the edge graph.
 
 Host-side NumPy functions; they live in :mod:`warp_ffi.host` with the other host-side entry
 points and are re-exported here under the names geomjax imports.

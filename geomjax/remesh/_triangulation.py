@@ -207,8 +207,7 @@ def corner_angles_at(x: np.ndarray, apex: np.ndarray, first: np.ndarray, second:
     if warp_available():
         from warp_ffi.remesh import corner_terms
 
-        terms = corner_terms(x, apex, first, second)
-        return np.arctan2(terms[:, 0], terms[:, 1])
+        return np.arctan2(*corner_terms(x, apex, first, second))
     return corner_angles(x[apex], x[first], x[second])
 
 
