@@ -110,8 +110,21 @@ def half_edges(triangles: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarr
     return tail, head, np.minimum(tail, head) * stride + np.maximum(tail, head)
 
 
-# Labels below this: a triangle's three sorted labels make one int64 key (2**21 cubed is 2**63).
-_KEYED_LABEL_LIMIT = 2**21 - 1
+# Vertex indices below this: a triangle's three sorted corners make one int64 key (2**21 cubed
+# is 2**63).
+_KEYED_INDEX_LIMIT = 2**21 - 1
+
+
+def triangle_keys(a: np.ndarray, b: np.ndarray, c: np.ndarray, top: int) -> np.ndarray | None:
+    """``(F,)`` int64: one key per triangle of corners ``a``, ``b``, ``c`` ``(F,)`` (indices
+    below ``top``), equal for the same three corners in any order; None if ``top`` is too
+    large for the key to fit (above ``_KEYED_INDEX_LIMIT``)."""
+    if top > _KEYED_INDEX_LIMIT:
+        return None
+    low = np.minimum(np.minimum(a, b), c).astype(np.int64)
+    high = np.maximum(np.maximum(a, b), c).astype(np.int64)
+    middle = a.astype(np.int64) + b + c - low - high
+    return (low * top + middle) * top + high
 
 
 def relabelled_triangles(labels: np.ndarray, corners: np.ndarray) -> np.ndarray:
@@ -124,14 +137,10 @@ def relabelled_triangles(labels: np.ndarray, corners: np.ndarray) -> np.ndarray:
     triangles = np.stack([a[keep], b[keep], c[keep]], axis=1)
     if triangles.shape[0] == 0:
         return triangles
-    # Duplicates in any orientation: keep the first occurrence. Each triangle's labels, sorted,
-    # as one int64 key while the largest label cubed fits (a third of the cost of sorting rows).
-    top = int(labels.max()) + 1
-    if top <= _KEYED_LABEL_LIMIT:
-        low = np.minimum(np.minimum(a[keep], b[keep]), c[keep]).astype(np.int64)
-        high = np.maximum(np.maximum(a[keep], b[keep]), c[keep]).astype(np.int64)
-        middle = a[keep].astype(np.int64) + b[keep] + c[keep] - low - high
-        key = (low * top + middle) * top + high
+    # Duplicates in any orientation: keep the first occurrence (one key per triangle costs a
+    # third of sorting rows).
+    key = triangle_keys(a[keep], b[keep], c[keep], int(labels.max()) + 1)
+    if key is not None:
         ordered = np.sort(key)
         if not np.any(ordered[1:] == ordered[:-1]):
             return triangles
@@ -370,8 +379,12 @@ def remove_degree_three(positions: np.ndarray, triangles: np.ndarray, num_vertic
         other = triangles[star_faces[:, 1]]
         d = np.max(np.where((other == centre[:, None]) | (other == a[:, None]) | (other == b[:, None]), -1, other), axis=1)
         link = np.stack([a, b, d], axis=1)
-        existing = {tuple(t) for t in np.sort(triangles, axis=1).tolist()}
-        new = np.array([tuple(t) not in existing for t in np.sort(link, axis=1).tolist()], bool)
+        link_keys = triangle_keys(a, b, d, num_vertices)
+        if link_keys is not None:
+            new = ~np.isin(link_keys, triangle_keys(triangles[:, 0], triangles[:, 1], triangles[:, 2], num_vertices))
+        else:
+            existing = {tuple(t) for t in np.sort(triangles, axis=1).tolist()}
+            new = np.array([tuple(t) not in existing for t in np.sort(link, axis=1).tolist()], bool)
         # A vertex standing out of its link's plane is a tip of the surface: it stays.
         x = positions.astype(np.float64)
         la, lb, ld = x[a], x[b], x[d]

@@ -145,7 +145,7 @@ def test_relabelled_triangles_keep_the_first_of_each_triangle(keyed, monkeypatch
     # relabel to the same triangle in either orientation; the first of each remains, in order.
     # keyed=False: labels too large for one int64 key per triangle (the row-sorting path).
     if not keyed:
-        monkeypatch.setattr("geomjax.remesh._triangulation._KEYED_LABEL_LIMIT", 4)
+        monkeypatch.setattr("geomjax.remesh._triangulation._KEYED_INDEX_LIMIT", 4)
     # Nine labels: many repeats; a label per vertex: a few; an icosphere's faces relabelled by a
     # permutation: none.
     rng = np.random.default_rng(11)
@@ -189,6 +189,36 @@ def test_corner_angles_kernel_gives_the_twins_bits(monkeypatch):
     expected = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))).reshape(-1, 3).min(axis=1)
     assert (smallest == 0).sum() >= 10  # (the triangles around a moved vertex too)
     np.testing.assert_allclose(smallest, expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("keyed", [True, False])
+def test_degree_three_vertices_go_unless_a_tip_or_a_tetrahedron(keyed, monkeypatch):
+    # A grid with a vertex added inside each of three triangles (a star of three around it):
+    # a vertex in the plane goes and its star becomes the triangle it split, oriented as before;
+    # one well above its triangle (a tip) stays, and so does one whose triangle was kept too
+    # (its link exists already). A closed tetrahedron (every vertex of degree three) stays
+    # whole. keyed=False: the path for vertex indices too large for one int64 key per triangle.
+    from geomjax.remesh._triangulation import DEGREE_THREE_MAX_HEIGHT, remove_degree_three
+
+    if not keyed:
+        monkeypatch.setattr("geomjax.remesh._triangulation._KEYED_INDEX_LIMIT", 4)
+    points, faces = _grid(5)
+    split, tip, kept = faces[5], faces[20], faces[27]
+    height = 2 * DEGREE_THREE_MAX_HEIGHT * np.sqrt(2.0)  # the longest edge of a grid triangle is sqrt(2)
+    stars = []
+    for face, z in ((split, 0.0), (tip, height), (kept, 0.0)):
+        centre = len(points)
+        points = np.concatenate([points, [points[face].mean(axis=0) + [0.0, 0.0, z]]])
+        stars.append([[face[0], face[1], centre], [face[1], face[2], centre], [face[2], face[0], centre]])
+    others = [f for k, f in enumerate(faces.tolist()) if k not in (5, 20)]
+    triangles = np.array(others + stars[0] + stars[1] + stars[2], np.int32)
+    result = remove_degree_three(points, triangles, len(points))
+    expected = others + stars[1] + stars[2] + [split.tolist()]
+    assert sorted(map(tuple, result.tolist())) == sorted(map(tuple, expected))
+
+    tetrahedron = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]], np.int32)
+    corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    np.testing.assert_array_equal(remove_degree_three(corners, tetrahedron, 4), tetrahedron)
 
 
 def test_overturned_vertices_are_the_corners_of_flipped_triangles(monkeypatch):
