@@ -380,8 +380,9 @@ def remove_degree_three(positions: np.ndarray, triangles: np.ndarray, num_vertic
         d = np.max(np.where((other == centre[:, None]) | (other == a[:, None]) | (other == b[:, None]), -1, other), axis=1)
         link = np.stack([a, b, d], axis=1)
         link_keys = triangle_keys(a, b, d, num_vertices)
-        if link_keys is not None:
-            new = ~np.isin(link_keys, triangle_keys(triangles[:, 0], triangles[:, 1], triangles[:, 2], num_vertices))
+        keys = triangle_keys(triangles[:, 0], triangles[:, 1], triangles[:, 2], num_vertices)
+        if link_keys is not None and keys is not None:
+            new = ~np.isin(link_keys, keys)
         else:
             existing = {tuple(t) for t in np.sort(triangles, axis=1).tolist()}
             new = np.array([tuple(t) not in existing for t in np.sort(link, axis=1).tolist()], bool)
