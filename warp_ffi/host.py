@@ -74,7 +74,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "overturned_vertices", "flip_rules", "corner_terms", "EdgeGraph", "grow_forest",
+    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "overturned_vertices", "flip_rules", "corner_terms", "cluster_seeds", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -1169,6 +1169,44 @@ def corner_terms(x: np.ndarray, apex: np.ndarray, first: np.ndarray, second: np.
     corners = [(np.ascontiguousarray(a, np.int64), wp.int64) for a in (apex, first, second)]
     launch_on_host(_corner_terms_kernel, apex.shape[0], [(np.ascontiguousarray(x, np.float64), wp.vec3d), *corners, (sines, wp.float64), (cosines, wp.float64)])
     return sines, cosines
+
+
+@wp.kernel
+@no_type_check
+def _cluster_seeds_kernel(
+    x: wp.array(dtype=wp.vec3d), centroids: wp.array(dtype=wp.vec3d), labels: wp.array(dtype=wp.int32), nearest: wp.array(dtype=wp.float64),
+    seed: wp.array(dtype=wp.int64),
+):  # fmt: skip
+    # One thread, vertices in order: a strictly nearer vertex replaces the seed, so a tie keeps
+    # the lowest index. A NaN distance poisons its cluster's minimum (as np.minimum.at's NaN
+    # does in the twin), which then has no seed.
+    for v in range(x.shape[0]):
+        label = labels[v]
+        offset = x[v] - centroids[label]
+        distance2 = _dot(offset, offset)
+        if distance2 != distance2:
+            nearest[label] = distance2
+            seed[label] = wp.int64(x.shape[0])
+        elif distance2 < nearest[label] or (distance2 == nearest[label] and seed[label] == wp.int64(x.shape[0])):
+            # (The second case: a first distance that is infinite.)
+            nearest[label] = distance2
+            seed[label] = wp.int64(v)
+
+
+def cluster_seeds(x: np.ndarray, centroids: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Per non-empty cluster (in label order), the vertex of ``x`` ``(V, 3)`` with label
+    ``labels`` ``(V,)`` (int32 in ``[0, K)``) nearest to its centroid of ``centroids``
+    ``(K, 3)`` (float64 distances; ties: the lowest vertex index): geomjax's remesher's cluster
+    seeds (``geomjax.remesh._surface_clusters._cluster_seeds``), the same answer as its NumPy
+    twin. One sequential CPU kernel."""
+    nearest, seed = np.full(centroids.shape[0], np.inf), np.full(centroids.shape[0], x.shape[0], np.int64)
+    arrays = [
+        (np.ascontiguousarray(x, np.float64), wp.vec3d),
+        (np.ascontiguousarray(centroids, np.float64), wp.vec3d),
+        (np.ascontiguousarray(labels, np.int32), wp.int32),
+    ]
+    launch_on_host(_cluster_seeds_kernel, 1, [*arrays, (nearest, wp.float64), (seed, wp.int64)])
+    return seed[seed < x.shape[0]]
 
 
 def largest_sagittas(x: np.ndarray, unit: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

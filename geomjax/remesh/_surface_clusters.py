@@ -221,7 +221,12 @@ def mend_tears(edges: MeshEdges, forest: SeedForest, x, corners, moments: Vertex
 
 def _cluster_seeds(x, centroids, labels) -> np.ndarray:
     """Per non-empty cluster (in label order), the member vertex closest to its centroid (ties:
-    the lowest vertex index)."""
+    the lowest vertex index). With warp-lang from a sequential kernel
+    (``warp_ffi.remesh.cluster_seeds``, the same answer: the same distances)."""
+    if warp_available():
+        from warp_ffi.remesh import cluster_seeds
+
+        return cluster_seeds(x, centroids, labels)
     offset = x.astype(np.float64, copy=False) - np.take(centroids, labels, axis=0)
     distance2 = row_dot(offset, offset)
     # Linear time (a sort by label and distance costs twenty times more): each cluster's

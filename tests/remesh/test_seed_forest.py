@@ -168,3 +168,31 @@ def test_a_vertex_follows_its_parent_to_a_rounded_tie(start):
     np.testing.assert_array_equal(distance, [0.0, 1.0, 2.0, 0.0, 3.5])
     np.testing.assert_array_equal(labels, [0, 1, 1, 1, 1])
     np.testing.assert_array_equal(parents[[v, j, c]], [b, v, j])
+
+
+@pytest.mark.parametrize("with_warp", [True, False])
+def test_cluster_seeds_are_the_members_nearest_their_centroids(with_warp, monkeypatch):
+    # Grid points (many exact ties: points at equal distances from a centroid on a grid node
+    # or between nodes) in 12 clusters, one of them empty, float32 points with float64
+    # centroids: per non-empty cluster, in label order, the member nearest its centroid, the
+    # lowest index among equals, as a loop over the clusters finds it.
+    if with_warp:
+        pytest.importorskip("warp")
+    else:
+        monkeypatch.setattr(surface_clusters, "warp_available", lambda: False)
+    vertices, _ = _grid(9)
+    rng = np.random.default_rng(2)
+    labels = rng.integers(0, 12, vertices.shape[0]).astype(np.int32)
+    labels[labels == 7] = 3
+    centroids = np.round(rng.uniform(0, 8, (12, 3)) * 2) / 2 * [1, 1, 0]
+    expected, tied = [], 0
+    for cluster in range(12):
+        members = np.flatnonzero(labels == cluster)
+        if members.size:
+            distance2 = np.sum((vertices[members] - centroids[cluster]) ** 2, axis=1)
+            nearest = np.flatnonzero(distance2 == distance2.min())
+            expected.append(members[nearest[0]])
+            tied += nearest.size > 1
+    assert tied > 0 and len(expected) == 11
+    seeds = surface_clusters._cluster_seeds(vertices.astype(np.float32), centroids, labels)
+    np.testing.assert_array_equal(seeds, expected)
