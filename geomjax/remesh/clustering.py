@@ -396,8 +396,7 @@ def remesh_with_sources(
     # centroids (a search less).
     final = projector is not None
     if backend == "warp":
-        background = tuple(f for f in (projector, edge_graph, plane_terms) if f is not None)
-        centroids, labels = _lloyd_warp(x, moments, centroids, max_iterations, radius, resolution, device, final, voxels, background)
+        centroids, labels = _lloyd_warp(x, moments, centroids, max_iterations, radius, resolution, device, final, voxels)
     else:
         centroids, labels = _lloyd_jax(x, moments, centroids, max_iterations, device, final)
     index_dtype = jnp.int64 if np.dtype(mesh_indices.dtype) == np.int64 else jnp.int32
@@ -594,11 +593,10 @@ class Voxels(NamedTuple):
 # Lloyd iterations.
 
 
-def _lloyd_warp(x, moments, centroids, iterations, radius, resolution, device, final, voxels: Voxels | None = None, background: tuple[Future, ...] = ()):
+def _lloyd_warp(x, moments, centroids, iterations, radius, resolution, device, final, voxels: Voxels | None = None):
     """Lloyd's iterations on the Warp hash grid: the final centroids and the labels of the last
     assignment (to the final centroids if ``final``, else to those before the last means).
     Labels that repeat are a fixed point: the iterations stop there, with the same results.
-    While work of ``background`` (futures) is pending, the searches leave a core to it.
 
     With the seeding's ``voxels``, the first search starts from a guess: each vertex's voxel's
     representative's nearest centroid (a search of a few points per cluster; the labels are
@@ -616,12 +614,9 @@ def _lloyd_warp(x, moments, centroids, iterations, radius, resolution, device, f
     low, high = column_min(x) - radius, column_max(x) + radius
     dims = table_dims(low, high, cell, (resolution,) * 3)
     search = CentroidSearch(x, radius, cell, dims, warp_device)
-
-    def nearest(centroids, previous):
-        # A core is left to the edge graph and plane terms (or the reference's search tree) while
-        # the background thread builds them; then the search takes every core.
-        return search(centroids, previous, spare_threads=int(not all(future.done() for future in background)))
-
+    # One core is left to the edge graph (or the reference's search tree), built meanwhile on the
+    # background thread.
+    nearest = functools.partial(search, spare_threads=1)
     guess = None
     if voxels is not None:
         guess = CentroidSearch(x[voxels.representatives], radius, cell, dims, warp_device)(centroids, spare_threads=1)[voxels.voxel]
