@@ -156,9 +156,8 @@ def launch_in_chunks(
     if on_cpu and (workers == 1 or num_chunks == 1):
         launch_on_host(kernel, (num_batch, num_items), [*inputs, 0, *outputs])
         return
-    inputs, outputs = [_host_array(a) for a in inputs], [_host_array(a) for a in outputs]
-    device = outputs[0].device
-    if workers == 1 or num_chunks == 1:
+    if not on_cpu:
+        device = outputs[0].device
         warp.launch(kernel, dim=(num_batch, num_items), inputs=[*inputs, 0], outputs=outputs, device=device)
         return
     workers = min(workers, num_chunks)
@@ -167,14 +166,15 @@ def launch_in_chunks(
     for _ in range(1, workers):
         copy = list(outputs)
         for k in accumulated:
-            copy[k] = warp.zeros_like(outputs[k])
+            copy[k] = (np.zeros_like(outputs[k][0]), outputs[k][1]) if isinstance(outputs[k], tuple) else warp.zeros_like(outputs[k])
         private.append(copy)
 
     def work(w):
-        # Contiguous chunks (rather than interleaved items) keep each worker's data in its cache.
+        # Contiguous chunks (rather than interleaved items) keep each worker's data in its cache;
+        # each worker thread replays its own recorded launch.
         for c in range(w, num_chunks, workers):
             start, stop = bounds[c], bounds[c + 1]
-            warp.launch(kernel, dim=(num_batch, stop - start), inputs=[*inputs, start], outputs=private[w], device=device)
+            launch_on_host(kernel, (num_batch, stop - start), [*inputs, start, *private[w]])
 
     futures = []
     for w in range(workers):
@@ -187,9 +187,14 @@ def launch_in_chunks(
     for future in futures:
         future.result()
     for k in accumulated:
-        total = outputs[k].numpy()
+        total = _host_values(outputs[k])
         for copy in private[1:]:
-            np.add(total, copy[k].numpy(), out=total)
+            np.add(total, _host_values(copy[k]), out=total)
+
+
+def _host_values(argument) -> np.ndarray:
+    """The NumPy array of a CPU argument: a ``(array, warp_dtype)`` pair's, a ``warp.array``'s view."""
+    return argument[0] if isinstance(argument, tuple) else argument.numpy()
 
 
 # ---------------------------------------------------------------------------------------------
