@@ -54,8 +54,9 @@ class PatchProjector:
         self.device = next(iter(vertices.devices()))
         self.vertices = vertices
         self.host_vertices = np.asarray(vertices)
+        # Host faces go into the JAX programs as they are (see __call__): a device_put of them
+        # here cost more than their transfers in all the calls of a remesh.
         self.host_faces = np.ascontiguousarray(faces, np.int32)
-        self.faces = jax.device_put(self.host_faces, self.device)
         self.offsets, self.candidates = patches.offsets, patches.faces
         magnitude = float(np.max(np.maximum(-column_min(self.host_vertices), column_max(self.host_vertices))))
         self.tie = (PATCH_TIE_EPSILONS * float(np.finfo(self.host_vertices.dtype).eps), magnitude)
@@ -83,7 +84,7 @@ class PatchProjector:
         size = _bucket(count, MIN_POINTS)
         # Host arrays go in as they are: jit puts them on the device of the vertices (committed
         # there), at a third of the cost of explicit device_put calls.
-        positions, weights = _closest_on_faces(self.vertices, self.faces, _pad(targets, size), _pad(faces, size))
+        positions, weights = _closest_on_faces(self.vertices, self.host_faces, _pad(targets, size), _pad(faces, size))
         return np.asarray(positions)[:count], faces, np.asarray(weights)[:count]
 
     def _closest_faces_jax(self, targets: np.ndarray, clusters: np.ndarray) -> np.ndarray:
@@ -100,7 +101,7 @@ class PatchProjector:
         pair_point = np.concatenate([pair_point, np.full(num_pairs - pair_point.size, num_points - 1, np.int32)])
         pair_face = _pad(pair_face, num_pairs)
         tie = np.asarray(self.tie, targets.dtype)
-        found = _nearest_pair_faces(self.vertices, self.faces, _pad(targets, num_points), pair_point, pair_face, tie)
+        found = _nearest_pair_faces(self.vertices, self.host_faces, _pad(targets, num_points), pair_point, pair_face, tie)
         return np.asarray(found)[:count]
 
 
