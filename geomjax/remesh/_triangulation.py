@@ -350,12 +350,16 @@ def remove_degree_three(positions: np.ndarray, triangles: np.ndarray, num_vertic
     two sharing a triangle), until none is left.
     """
     while True:
-        fixed = boundary_vertices(triangles, num_vertices)
         corners = triangles.reshape(-1)
         incident = np.bincount(corners, minlength=num_vertices)
         tail, head, key = half_edges(triangles, num_vertices)
-        _, first = np.unique(key, return_index=True)
+        _, first, counts = np.unique(key, return_index=True, return_counts=True)
         degree = np.bincount(np.concatenate([tail[first], head[first]]), minlength=num_vertices)
+        # The boundary vertices (see boundary_vertices): the ends of the edges of one triangle.
+        single = first[counts == 1]
+        fixed = np.zeros(num_vertices, bool)
+        fixed[tail[single]] = True
+        fixed[head[single]] = True
         candidate = (incident == 3) & (degree == 3) & ~fixed
         # The triangles around each candidate; a triangle with two candidates is left alone.
         owner = np.repeat(np.arange(triangles.shape[0]), 3)
@@ -382,7 +386,8 @@ def remove_degree_three(positions: np.ndarray, triangles: np.ndarray, num_vertic
         link_keys = triangle_keys(a, b, d, num_vertices)
         keys = triangle_keys(triangles[:, 0], triangles[:, 1], triangles[:, 2], num_vertices)
         if link_keys is not None and keys is not None:
-            new = ~np.isin(link_keys, keys)
+            keys.sort()
+            new = keys[np.minimum(np.searchsorted(keys, link_keys), keys.size - 1)] != link_keys
         else:
             existing = {tuple(t) for t in np.sort(triangles, axis=1).tolist()}
             new = np.array([tuple(t) not in existing for t in np.sort(link, axis=1).tolist()], bool)
