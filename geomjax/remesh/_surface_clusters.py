@@ -18,7 +18,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from .._dispatch import warp_available
-from ._triangulation import half_edges, relabelled_triangles, row_dot
+from ._triangulation import first_occurrences, half_edges, relabelled_triangles, row_dot
 
 __all__ = ["ClusterPatches", "MeshEdges", "SeedForest", "VertexMoments", "cluster_means", "connected_clusters", "mend_tears"]
 
@@ -187,7 +187,7 @@ def mend_tears(edges: MeshEdges, forest: SeedForest, x, corners, moments: Vertex
         if triangles.shape[0] == 0:
             return centroids, triangles
         tail, head, key = half_edges(triangles, num)
-        _, first, counts = np.unique(key, return_index=True, return_counts=True)
+        first, counts = first_occurrences(key)
         on_boundary = np.zeros(num, bool)
         on_boundary[labels[edges.boundary]] = True
         single = first[counts == 1]

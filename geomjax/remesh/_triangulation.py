@@ -18,6 +18,7 @@ __all__ = [
     "boundary_vertices",
     "corner_angles",
     "corner_angles_at",
+    "first_occurrences",
     "collapse_poor_triangles",
     "column_max",
     "column_min",
@@ -108,6 +109,19 @@ def half_edges(triangles: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarr
     tail = triangles.reshape(-1).astype(np.int64)
     head = rotated_corners(triangles, 1).reshape(-1).astype(np.int64)
     return tail, head, np.minimum(tail, head) * stride + np.maximum(tail, head)
+
+
+def first_occurrences(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per distinct value of ``keys`` ``(N,)`` (ascending): the index of its first occurrence and
+    its count, as ``np.unique(keys, return_index=True, return_counts=True)[1:]`` gives them
+    (a stable sort and the runs of equal values, without np.unique's overhead: a fifth less on
+    the remesher's edge keys)."""
+    if keys.size == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    order = np.argsort(keys, kind="stable")
+    ordered = keys[order]
+    starts = np.flatnonzero(np.concatenate([[True], ordered[1:] != ordered[:-1]]))
+    return order[starts], np.diff(np.append(starts, keys.size))
 
 
 # Vertex indices below this: a triangle's three sorted corners make one int64 key (2**21 cubed
@@ -353,7 +367,7 @@ def remove_degree_three(positions: np.ndarray, triangles: np.ndarray, num_vertic
         corners = triangles.reshape(-1)
         incident = np.bincount(corners, minlength=num_vertices)
         tail, head, key = half_edges(triangles, num_vertices)
-        _, first, counts = np.unique(key, return_index=True, return_counts=True)
+        first, counts = first_occurrences(key)
         degree = np.bincount(np.concatenate([tail[first], head[first]]), minlength=num_vertices)
         # The boundary vertices (see boundary_vertices): the ends of the edges of one triangle.
         single = first[counts == 1]

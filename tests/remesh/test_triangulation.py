@@ -221,6 +221,17 @@ def test_degree_three_vertices_go_unless_a_tip_or_a_tetrahedron(keyed, monkeypat
     np.testing.assert_array_equal(remove_degree_three(corners, tetrahedron, 4), tetrahedron)
 
 
+def test_first_occurrences_are_numpys():
+    from geomjax.remesh._triangulation import first_occurrences
+
+    rng = np.random.default_rng(3)
+    for keys in (rng.integers(0, 40, 300), np.arange(7)[::-1].copy(), np.zeros(5, np.int64), np.zeros(0, np.int64)):
+        first, counts = first_occurrences(keys)
+        _, expected_first, expected_counts = np.unique(keys, return_index=True, return_counts=True)
+        np.testing.assert_array_equal(first, expected_first)
+        np.testing.assert_array_equal(counts, expected_counts)
+
+
 def test_overturned_vertices_are_the_corners_of_flipped_triangles(monkeypatch):
     # A grid whose vertex 12 moves past its neighbours: the triangles around it turn over (their
     # normals' z changes sign), and their corners are flagged; a small move flags nothing.
