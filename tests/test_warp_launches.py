@@ -92,3 +92,6 @@ def test_an_array_the_kernel_cannot_view_is_refused():
     strided = np.zeros((points.shape[0], 2), np.int32)[:, 0]
     with pytest.raises(ValueError, match="argument 3 must be C-contiguous"):
         launch_on_host(_overturned_kernel, triangles.shape[0], [*arrays, (strided, wp.int32)])
+    four = np.zeros((points.shape[0], 4))  # rows of four where the kernel reads 3-vectors
+    with pytest.raises(ValueError, match=r"argument 1 must be C-contiguous with elements of shape \(3,\)"):
+        launch_on_host(_overturned_kernel, triangles.shape[0], [arrays[0], (four, wp.vec3d), *arrays[2:], (np.zeros(points.shape[0], np.int32), wp.int32)])

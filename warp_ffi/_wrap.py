@@ -213,10 +213,11 @@ _RECORDING = threading.Lock()
 
 
 def _layout(value) -> tuple:
-    """What a recorded launch fixes of an argument: its kind, dtypes and trailing shape."""
+    """What a recorded launch fixes of an argument: its kind, dtypes and dimensions (not its
+    sizes: one recording serves every size)."""
     if isinstance(value, tuple):
         array, dtype = value
-        return (dtype, array.dtype, array.shape[1:])
+        return (dtype, array.dtype, array.ndim)
     if isinstance(value, warp.array):
         return (warp.array, value.dtype, value.ndim)
     return (type(value),)
@@ -254,15 +255,17 @@ def launch_on_host(kernel, dim, args: Sequence) -> None:
             launch = warp.launch(kernel, dim=dim, inputs=wrapped, device="cpu", record_cmd=True)
         # The recorded arguments would keep the first call's arrays alive.
         launch.fwd_args = None
-        # Per argument: the Warp dimensions of a NumPy array, None for anything else.
-        replay = replays[key] = (launch, tuple(w.ndim if isinstance(a, tuple) else None for a, w in zip(args, wrapped)))
-    launch, dims = replay
+        # Per argument: a NumPy array's Warp dimensions and the shape of an element (its trailing
+        # dimensions: (3,) for a vec3d), None for anything else.
+        layouts = tuple((w.ndim, a[0].shape[w.ndim :]) if isinstance(a, tuple) else None for a, w in zip(args, wrapped))
+        replay = replays[key] = (launch, layouts)
+    launch, layouts = replay
     params = launch.params
-    for index, (value, ndim) in enumerate(zip(args, dims)):
-        if ndim is not None:
-            array = value[0]
-            if not array.flags.c_contiguous:
-                raise ValueError(f"{kernel.key}: argument {index} must be C-contiguous")
+    for index, (value, layout) in enumerate(zip(args, layouts)):
+        if layout is not None:
+            array, (ndim, element) = value[0], layout
+            if array.shape[ndim:] != element or not array.flags.c_contiguous:
+                raise ValueError(f"{kernel.key}: argument {index} must be C-contiguous with elements of shape {element}, got {array.shape}")
             # The recorded launch's own descriptor of the array (params[0] holds the bounds).
             descriptor = params[index + 1]
             descriptor.data = array.ctypes.data
