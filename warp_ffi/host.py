@@ -74,7 +74,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "closest_tree", "mesh_handle", "refit_mesh",
     "reject_near_accepted", "resolve_conflicts", "neighbour_lists", "eliminate",
-    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "overturned_vertices", "flip_rules", "corner_terms", "cluster_seeds", "EdgeGraph", "grow_forest",
+    "nearest_centroids", "CentroidSearch", "PatchSearch", "patch_closest_faces", "face_geometry", "vertex_plane_terms", "largest_sagittas", "relaxation_sums", "overturned_vertices", "flip_rules", "corner_terms", "cluster_seeds", "fold_heights", "EdgeGraph", "grow_forest",
 ]  # fmt: skip
 
 
@@ -1207,6 +1207,65 @@ def cluster_seeds(x: np.ndarray, centroids: np.ndarray, labels: np.ndarray) -> n
     ]
     launch_on_host(_cluster_seeds_kernel, 1, [*arrays, (nearest, wp.float64), (seed, wp.int64)])
     return seed[seed < x.shape[0]]
+
+
+@wp.func
+@no_type_check
+def _edge_sagitta(x: wp.array(dtype=wp.vec3d), unit: wp.array(dtype=wp.vec3d), a: wp.int64, b: wp.int64):
+    """The signed sagitta ``(x_b - x_a) . (n_b - n_a) / 8`` of edge ``a -> b``, rounded as the
+    NumPy twin's."""
+    return _dot(x[b] - x[a], unit[b] - unit[a]) / wp.float64(8.0)
+
+
+@wp.func
+@no_type_check
+def _fold_height(ab: wp.float64, bc: wp.float64, ca: wp.float64):
+    """The largest of a triangle's edge sagittas and 4/9 of their sum, in absolute value."""
+    four_ninths = wp.float64(4.0) / wp.float64(9.0)
+    return wp.max(wp.max(wp.abs(ab), wp.abs(bc)), wp.max(wp.abs(ca), four_ninths * wp.abs((ab + bc) + ca)))
+
+
+@wp.func
+@no_type_check
+def _triangle_fold_height(x: wp.array(dtype=wp.vec3d), unit: wp.array(dtype=wp.vec3d), triangles: wp.array(dtype=wp.int32), t: wp.int64):
+    three = wp.int64(3)
+    a = wp.int64(triangles[three * t])
+    b = wp.int64(triangles[three * t + wp.int64(1)])
+    c = wp.int64(triangles[three * t + wp.int64(2)])
+    return _fold_height(_edge_sagitta(x, unit, a, b), _edge_sagitta(x, unit, b, c), _edge_sagitta(x, unit, c, a))
+
+
+@wp.kernel
+@no_type_check
+def _fold_heights_kernel(
+    x: wp.array(dtype=wp.vec3d), unit: wp.array(dtype=wp.vec3d), triangles: wp.array(dtype=wp.int32), first: wp.array(dtype=wp.int64),
+    second: wp.array(dtype=wp.int64), u: wp.array(dtype=wp.int64), v: wp.array(dtype=wp.int64), p: wp.array(dtype=wp.int64),
+    q: wp.array(dtype=wp.int64), now: wp.array(dtype=wp.float64), flipped: wp.array(dtype=wp.float64),
+):  # fmt: skip
+    # (Parameters are C++ names: not "new".)
+    i = wp.tid()
+    now[i] = wp.max(_triangle_fold_height(x, unit, triangles, first[i] // wp.int64(3)), _triangle_fold_height(x, unit, triangles, second[i] // wp.int64(3)))
+    pq = _edge_sagitta(x, unit, p[i], q[i])
+    first_new = _fold_height(_edge_sagitta(x, unit, u[i], q[i]), pq, _edge_sagitta(x, unit, p[i], u[i]))
+    second_new = _fold_height(_edge_sagitta(x, unit, q[i], v[i]), _edge_sagitta(x, unit, v[i], p[i]), pq)
+    flipped[i] = wp.max(first_new, second_new)
+
+
+def fold_heights(
+    x: np.ndarray, unit: np.ndarray, triangles: np.ndarray, first: np.ndarray, second: np.ndarray, u: np.ndarray, v: np.ndarray, p: np.ndarray, q: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """``(M,)`` float64 twice: per pair of ``triangles`` ``(T, 3)`` (half-edges ``first``
+    ``u -> v`` and ``second`` ``v -> u``, half-edge ``h`` being edge ``h % 3`` of triangle
+    ``h // 3``, third corners ``p`` and ``q``; int64 ``(M,)``), the estimated height of the
+    surface over its two triangles now and after a flip, from positions ``x`` and unit normals
+    ``unit`` ``(V, 3)`` float64: geomjax's remesher's fold-flip estimate
+    (``geomjax.remesh._flips.fold_flips``), the same bits as its NumPy twin (finite inputs)."""
+    old, new = np.empty(u.shape[0]), np.empty(u.shape[0])
+    rows = [(np.ascontiguousarray(x, np.float64), wp.vec3d), (np.ascontiguousarray(unit, np.float64), wp.vec3d)]
+    pairs = [(np.ascontiguousarray(a, np.int64), wp.int64) for a in (first, second, u, v, p, q)]
+    faces = (np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32)
+    launch_on_host(_fold_heights_kernel, u.shape[0], [*rows, faces, *pairs, (old, wp.float64), (new, wp.float64)])
+    return old, new
 
 
 def largest_sagittas(x: np.ndarray, unit: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

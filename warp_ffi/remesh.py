@@ -1,8 +1,8 @@
 """The clustering remesher's host-side kernels: the faces' corners, normals and areas, nearest
 centroids on a Warp hash grid, the nearest face of each point among its cluster's faces, the
 plane quadric terms summed into the vertices, the clusters' seeds, the relaxation's bending
-measure, circumcentre sums and fold check, the flip rules, corner angles, and the clusters as
-a shortest-path forest of the edge graph.
+measure, circumcentre sums and fold check, the flip rules and fold heights, corner angles, and
+the clusters as a shortest-path forest of the edge graph.
 
 Host-side NumPy functions; they live in :mod:`warp_ffi.host` with the other host-side entry
 points and are re-exported here under the names geomjax imports.
@@ -15,6 +15,7 @@ from .host import cluster_seeds as cluster_seeds
 from .host import corner_terms as corner_terms
 from .host import face_geometry as face_geometry
 from .host import flip_rules as flip_rules
+from .host import fold_heights as fold_heights
 from .host import grow_forest as grow_forest
 from .host import largest_sagittas as largest_sagittas
 from .host import nearest_centroids as nearest_centroids

@@ -87,20 +87,12 @@ def fold_flips(positions: np.ndarray, triangles: np.ndarray, normals: np.ndarray
     stride = np.int64(positions.shape[0])
     pairs = _Pairs.of(triangles, stride)
     u, v, p, q = pairs.u, pairs.v, pairs.p, pairs.q
-    # Signed sagittas of the half-edges, as (F, 3) in corner order (edge k runs from corner k).
-    a, b = triangles.reshape(-1), rotated_corners(triangles, 1).reshape(-1)
-    sagitta = (row_dot(x[b] - x[a], unit[b] - unit[a]) / 8).reshape(-1, 3)
+    if warp_available():
+        from warp_ffi.remesh import fold_heights
 
-    def height(ab, bc, ca):
-        return np.maximum(np.maximum(np.abs(ab), np.abs(bc)), np.maximum(np.abs(ca), 4 / 9 * np.abs(ab + bc + ca)))
-
-    # The pair's outer edges keep their sagittas: v->p and p->u follow u->v in the first
-    # triangle, u->q and q->v follow v->u in the second.
-    vp, pu = (sagitta.reshape(-1)[_next_half_edge(pairs.first, k)] for k in (1, 2))
-    uq, qv = (sagitta.reshape(-1)[_next_half_edge(pairs.second, k)] for k in (1, 2))
-    pq = row_dot(x[q] - x[p], unit[q] - unit[p]) / 8
-    old = np.maximum(height(*sagitta[pairs.first // 3].T), height(*sagitta[pairs.second // 3].T))
-    new = np.maximum(height(uq, pq, pu), height(qv, vp, pq))  # sagittas are symmetric in their ends
+        old, new = fold_heights(x, unit, triangles, pairs.first, pairs.second, u, v, p, q)
+    else:
+        old, new = _fold_heights(x, unit, triangles, pairs)
     promising = np.flatnonzero(new < (1 - FOLD_GAIN) * old)
     promising = promising[np.argsort(-old[promising], kind="stable")[:FOLD_CHECKED]]
     u, v, p, q = u[promising], v[promising], p[promising], q[promising]
@@ -121,6 +113,26 @@ def fold_flips(positions: np.ndarray, triangles: np.ndarray, normals: np.ndarray
     if np.any(better):
         pairs.flip(triangles, promising[better], measured_new[better] - measured_old[better], stride)
     return triangles
+
+
+def _fold_heights(x: np.ndarray, unit: np.ndarray, triangles: np.ndarray, pairs: _Pairs) -> tuple[np.ndarray, np.ndarray]:
+    """Per pair, the estimated height of the surface over its two triangles, now and flipped
+    (see :func:`fold_flips`; the NumPy twin of ``warp_ffi.remesh.fold_heights``)."""
+    # Signed sagittas of the half-edges, as (F, 3) in corner order (edge k runs from corner k).
+    a, b = triangles.reshape(-1), rotated_corners(triangles, 1).reshape(-1)
+    sagitta = (row_dot(x[b] - x[a], unit[b] - unit[a]) / 8).reshape(-1, 3)
+
+    def height(ab, bc, ca):
+        return np.maximum(np.maximum(np.abs(ab), np.abs(bc)), np.maximum(np.abs(ca), 4 / 9 * np.abs(ab + bc + ca)))
+
+    # The pair's outer edges keep their sagittas: v->p and p->u follow u->v in the first
+    # triangle, u->q and q->v follow v->u in the second.
+    vp, pu = (sagitta.reshape(-1)[_next_half_edge(pairs.first, k)] for k in (1, 2))
+    uq, qv = (sagitta.reshape(-1)[_next_half_edge(pairs.second, k)] for k in (1, 2))
+    pq = row_dot(x[pairs.q] - x[pairs.p], unit[pairs.q] - unit[pairs.p]) / 8
+    old = np.maximum(height(*sagitta[pairs.first // 3].T), height(*sagitta[pairs.second // 3].T))
+    new = np.maximum(height(uq, pq, pu), height(qv, vp, pq))  # sagittas are symmetric in their ends
+    return old, new
 
 
 def _next_half_edge(half_edge: np.ndarray, step: int) -> np.ndarray:

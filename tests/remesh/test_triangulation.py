@@ -232,6 +232,28 @@ def test_first_occurrences_are_numpys():
         np.testing.assert_array_equal(counts, expected_counts)
 
 
+def test_fold_heights_kernel_gives_the_twins_bits():
+    # Pairs of a jittered icosphere with normals bent away from the radial direction (so the
+    # sagittas differ and the flipped heights rank otherwise): the kernel's heights before and
+    # after a flip equal the NumPy twin's to the bit, and some pairs would gain by a flip.
+    pytest.importorskip("warp")
+    from geomjax.remesh._flips import FOLD_GAIN, _fold_heights, _Pairs
+    from geomjax.remesh._triangulation import unit_rows
+    from warp_ffi.remesh import fold_heights
+
+    sphere = icosphere(2)
+    rng = np.random.default_rng(9)
+    points = np.asarray(sphere.points, np.float64) * rng.uniform(0.9, 1.1, (len(sphere.points), 1))
+    unit = unit_rows(points + rng.normal(0, 0.3, points.shape))
+    faces = np.asarray(sphere.cells, np.int32)
+    pairs = _Pairs.of(faces, np.int64(len(points)))
+    kernel = fold_heights(points, unit, faces, pairs.first, pairs.second, pairs.u, pairs.v, pairs.p, pairs.q)
+    twin = _fold_heights(points, unit, faces, pairs)
+    for ours, theirs in zip(kernel, twin):
+        np.testing.assert_array_equal(ours, theirs)
+    assert 0 < np.sum(twin[1] < (1 - FOLD_GAIN) * twin[0]) < len(twin[0])
+
+
 def test_overturned_vertices_are_the_corners_of_flipped_triangles(monkeypatch):
     # A grid whose vertex 12 moves past its neighbours: the triangles around it turn over (their
     # normals' z changes sign), and their corners are flagged; a small move flags nothing.
