@@ -187,13 +187,14 @@ def launch_in_chunks(
     for future in futures:
         future.result()
     for k in accumulated:
-        total = _host_values(outputs[k])
+        total = host_values(outputs[k])
         for copy in private[1:]:
-            np.add(total, _host_values(copy[k]), out=total)
+            np.add(total, host_values(copy[k]), out=total)
 
 
-def _host_values(argument) -> np.ndarray:
-    """The NumPy array of a CPU argument: a ``(array, warp_dtype)`` pair's, a ``warp.array``'s view."""
+def host_values(argument) -> np.ndarray:
+    """The host values of a kernel argument: a ``(array, warp_dtype)`` pair's array, or a
+    ``warp.array``'s (a view on the CPU, a copy from another device)."""
     return argument[0] if isinstance(argument, tuple) else argument.numpy()
 
 

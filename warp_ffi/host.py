@@ -65,7 +65,7 @@ import numpy as np
 
 from ._grid import mesh_words
 from ._obb_tree import TREE_ARRAYS, build_tree
-from ._wrap import WARP_SCALAR, Overloads, launch_in_chunks, launch_on_host, scalars, vectors
+from ._wrap import WARP_SCALAR, Overloads, host_values, launch_in_chunks, launch_on_host, scalars, vectors
 from ._wrap import warp as wp
 from .closest import triangle_distance_sq
 
@@ -113,11 +113,6 @@ class _HostArguments:
             launch_on_host(kernel, dim, args)
         else:
             wp.launch(kernel, dim=dim, inputs=args, device=self.device)
-
-    @staticmethod
-    def values(argument) -> np.ndarray:
-        """The host values of an argument (of a ``wp.array``, a copy)."""
-        return argument[0] if isinstance(argument, tuple) else argument.numpy()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -671,7 +666,7 @@ class CentroidSearch:
                 # Count (no offsets: nothing listed), then list from the counts' running sums.
                 lists([grid.id, centroids_arg, self.params, unlisted[0]], [counts, *unlisted])
                 offsets = np.zeros(num + 1, np.int32)
-                np.cumsum(arguments.values(counts), out=offsets[1:])
+                np.cumsum(host_values(counts), out=offsets[1:])
                 offsets_arg = arguments.array(offsets, wp.int32)
                 neighbours, distances = arguments.empty(int(offsets[-1]), wp.int32), arguments.empty(int(offsets[-1]), scalar)
                 lists([grid.id, centroids_arg, self.params, offsets_arg], [counts, neighbours, distances])
@@ -681,7 +676,7 @@ class CentroidSearch:
                     arguments.launch(_centroid_gap(self.dtype), num_gaps, [grid.id, centroids_arg, self.params, gaps])
             inputs = [grid.id, self.points, centroids_arg, self.params, previous_arg, gaps, offsets_arg, neighbours, distances]
             launch_in_chunks(_nearest_centroid(self.dtype), 1, num_points, inputs, [labels], spare_threads=spare_threads)
-        result = arguments.values(labels)
+        result = host_values(labels)
         self._last = (result, labels)
         return result
 
@@ -835,7 +830,7 @@ def patch_closest_faces(search: PatchSearch, points: np.ndarray, patches: np.nda
         arguments.array(np.ascontiguousarray(np.zeros(0) if hints is None else hints, np.int32), wp.int32),
     ]
     launch_in_chunks(_patch_closest(search.dtype), 1, points.shape[0], inputs, [found], min_chunk=search.min_chunk)
-    return arguments.values(found)
+    return host_values(found)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1022,11 +1017,33 @@ def _largest_sagittas_kernel(
 
 @wp.func
 @no_type_check
+def _cross(a: wp.vec3d, b: wp.vec3d):
+    """``a x b``, rounded as the NumPy twins' row_cross."""
+    return wp.vec3d(a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@wp.func
+@no_type_check
+def _dot(a: wp.vec3d, b: wp.vec3d):
+    """``a . b``, summed as the NumPy twins' row_dot."""
+    return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
+
+
+@wp.func
+@no_type_check
+def _unit(a: wp.vec3d):
+    """``a / |a|`` (``a`` itself if its norm is not positive), as the NumPy twins' unit_rows."""
+    norm = wp.sqrt(_dot(a, a))
+    if norm > wp.float64(0.0):
+        return wp.vec3d(a[0] / norm, a[1] / norm, a[2] / norm)
+    return a
+
+
+@wp.func
+@no_type_check
 def _doubled_normal(x: wp.array(dtype=wp.vec3d), i: wp.int32, j: wp.int32, k: wp.int32):
     """``(x_j - x_i) x (x_k - x_i)``, rounded as the NumPy twin's row_cross."""
-    u = x[j] - x[i]
-    v = x[k] - x[i]
-    return wp.vec3d(u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+    return _cross(x[j] - x[i], x[k] - x[i])
 
 
 @wp.kernel
@@ -1056,30 +1073,6 @@ def overturned_vertices(old: np.ndarray, new: np.ndarray, triangles: np.ndarray)
     arrays = [(np.ascontiguousarray(old, np.float64), wp.vec3d), (np.ascontiguousarray(new, np.float64), wp.vec3d)]
     launch_on_host(_overturned_kernel, triangles.shape[0], [*arrays, (np.ascontiguousarray(triangles, np.int32).reshape(-1), wp.int32), (turned, wp.int32)])
     return turned.astype(bool)
-
-
-@wp.func
-@no_type_check
-def _cross(a: wp.vec3d, b: wp.vec3d):
-    """``a x b``, rounded as the NumPy twins' row_cross."""
-    return wp.vec3d(a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-@wp.func
-@no_type_check
-def _dot(a: wp.vec3d, b: wp.vec3d):
-    """``a . b``, summed as the NumPy twins' row_dot."""
-    return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
-
-
-@wp.func
-@no_type_check
-def _unit(a: wp.vec3d):
-    """``a / |a|`` (``a`` itself if its norm is not positive), as the NumPy twins' unit_rows."""
-    norm = wp.sqrt(_dot(a, a))
-    if norm > wp.float64(0.0):
-        return wp.vec3d(a[0] / norm, a[1] / norm, a[2] / norm)
-    return a
 
 
 @wp.kernel
